@@ -1,0 +1,384 @@
+"""Tests of the H-K range-image segmentation (recognition/segmentation.py and its helpers)."""
+
+from __future__ import annotations
+
+import _synthetic_range as S  # tests/ is on sys.path under pytest's default import mode
+import numpy as np
+import pytest
+import scipy.ndimage as ndi
+
+from evaluation.hoover import connected_truth_regions, hoover_score
+from recognition import derivatives as D
+from recognition.segmentation import (
+    EdgeType,
+    SegmentationParams,
+    SurfaceType,
+    segment,
+)
+from recognition.surface_fit import PlaneFit, QuadricSurfaceFit, fit_plane, fit_quadric_lsq, ray_residuals
+
+CAM = S.Camera(120, 160, 150.0)
+NOISE_FREE_SIGMA = 3e-4  # declared sigma for exact images (sets the zero thresholds)
+
+
+def _seg(surfaces, sigma=0.0, camera=CAM, seed=0, declared=None, params=None):
+    pts, sig, ids = S.render(surfaces, camera, sigma, np.random.default_rng(seed))
+    declared = NOISE_FREE_SIGMA if declared is None else declared
+    sig_in = np.where(np.isfinite(sig), declared, np.nan)
+    return segment(pts, sig_in, params), pts, ids
+
+
+def _interior(ids, sid, seg, margin=4):
+    m = ndi.binary_erosion(ids == sid, iterations=margin)
+    return m & (seg.edges == 0) & np.isfinite(seg.H)
+
+
+def _local(pts, origin, axis):
+    R = S.frame(axis)
+    return (pts - np.asarray(origin, float)) @ R
+
+
+def _assert_close(est, exp, rel=0.03, rel90=0.10, abs_tol=1e-9):
+    err = np.abs(est - exp) / np.maximum(np.abs(exp), abs_tol)
+    assert np.median(err) < rel, np.median(err)
+    assert np.percentile(err, 90) < rel90, np.percentile(err, 90)
+
+
+# ----------------------------------------------------------------------------------- analytic curvature
+
+
+def test_plane_noise_free():
+    seg, pts, ids = _seg([S.plane([0, 0, 2.0], [0.3, -0.2, -1.0], 1)])
+    m = _interior(ids, 1, seg)
+    assert np.abs(seg.H[m]).max() < 1e-6 and np.abs(seg.K[m]).max() < 1e-9
+    assert np.mean(seg.hk_class[m] == SurfaceType.PLANAR) > 0.99
+    assert seg.n_patches == 1
+    p = seg.patches[0]
+    assert p.surface_type == SurfaceType.PLANAR and isinstance(p.fit, PlaneFit)
+    n_true = np.array([0.3, -0.2, -1.0]) / np.linalg.norm([0.3, -0.2, -1.0])
+    assert np.allclose(p.fit.normal, n_true, atol=1e-9)  # faces the sensor
+    assert p.fit.d == pytest.approx(2.0 * n_true[2], abs=1e-9)
+    assert not p.small and not p.noisy
+
+
+def test_sphere_noise_free():
+    r = 0.5
+    seg, pts, ids = _seg([S.sphere([0, 0, 2.0], r, 1)])
+    m = _interior(ids, 1, seg)
+    _assert_close(seg.H[m], np.full(m.sum(), -1 / r))
+    _assert_close(seg.K[m], np.full(m.sum(), 1 / r**2))
+    assert np.mean(seg.hk_class[m] == SurfaceType.ELLIPTIC) > 0.99
+    big = seg.patches[0]
+    assert big.surface_type == SurfaceType.ELLIPTIC and isinstance(big.fit, QuadricSurfaceFit)
+    # the quadric is the sphere: A proportional to I, centre (0, 0, 2)
+    A, b = big.fit.A, big.fit.b
+    assert np.allclose(A / A[0, 0], np.eye(3), atol=1e-6)
+    assert np.allclose(-0.5 * np.linalg.solve(A, b), [0, 0, 2.0], atol=1e-6)
+
+
+def test_cylinder_noise_free():
+    r = 0.3
+    seg, pts, ids = _seg([S.cylinder([0, 0, 2.0], [0, 1, 0.2], r, 3.0, 1)])
+    m = _interior(ids, 1, seg)
+    _assert_close(seg.H[m], np.full(m.sum(), -1 / (2 * r)))
+    assert np.percentile(np.abs(seg.K[m]), 90) < 0.01 / r**2
+    assert np.mean(seg.hk_class[m] == SurfaceType.CYLINDRICAL) > 0.95
+    assert seg.patches[0].surface_type == SurfaceType.CYLINDRICAL
+
+
+def test_cone_noise_free_is_cylindrical():
+    alpha = np.deg2rad(20)
+    apex, axis = [0, -0.8, 2.2], [0, 1, 0]
+    seg, pts, ids = _seg([S.cone(apex, axis, alpha, 0.3, 1.6, 1)])
+    m = _interior(ids, 1, seg)
+    q = _local(pts[m], apex, axis)
+    rho = np.hypot(q[:, 0], q[:, 1])
+    _assert_close(seg.H[m], -np.cos(alpha) / (2 * rho))
+    assert np.mean(seg.hk_class[m] == SurfaceType.CYLINDRICAL) > 0.95
+
+
+def test_saddle_noise_free_is_hyperbolic():
+    a, origin, axis = 1.0, [0, 0, 2.0], [0, 0, -1.0]
+    seg, pts, ids = _seg([S.saddle(origin, axis, a, 0.5, 1)])
+    m = _interior(ids, 1, seg)
+    q = _local(pts[m], origin, axis)
+    w = 1 + 4 * a**2 * (q[:, 0] ** 2 + q[:, 1] ** 2)
+    _assert_close(seg.K[m], -4 * a**2 / w**2)
+    h_abs = np.abs(4 * a**3 * (q[:, 1] ** 2 - q[:, 0] ** 2) / w**1.5)
+    assert np.median(np.abs(np.abs(seg.H[m]) - h_abs)) < 0.03
+    assert np.mean(seg.hk_class[m] == SurfaceType.HYPERBOLIC) > 0.95
+
+
+def test_torus_noise_free_elliptic_outside_hyperbolic_inside():
+    R, a, centre, axis = 0.45, 0.15, [0, 0, 2.5], [0, -0.3, -1.0]
+    seg, pts, ids = _seg([S.torus(centre, axis, R, a, 1, steps=300)], camera=S.Camera(150, 190, 280.0), declared=1e-4)
+    m = _interior(ids, 1, seg, margin=3)
+    q = _local(pts[m], centre, axis)
+    cphi = (np.hypot(q[:, 0], q[:, 1]) - R) / a
+    K_true = cphi / (a * (R + a * cphi))
+    H_true = -(R + 2 * a * cphi) / (2 * a * (R + a * cphi))
+    _assert_close(seg.H[m], H_true, rel=0.03, rel90=0.12)
+    sure = np.abs(cphi) > 0.3
+    assert np.mean(np.sign(seg.K[m][sure]) == np.sign(K_true[sure])) > 0.97
+    cls = seg.hk_class[m]
+    assert np.mean(cls[cphi > 0.3] == SurfaceType.ELLIPTIC) > 0.95
+    assert np.mean(cls[cphi < -0.3] == SurfaceType.HYPERBOLIC) > 0.95
+    types = {p.surface_type for p in seg.patches if not p.small}
+    assert {SurfaceType.ELLIPTIC, SurfaceType.HYPERBOLIC} <= types
+
+
+# ----------------------------------------------------------------------------------- noise
+
+
+def test_noisy_plane_and_cylinder_classified_by_noise_thresholds():
+    sigma = 5e-4
+    seg, pts, ids = _seg(
+        [S.plane([0, 0, 2.5], [0, 0, -1.0], 1), S.cylinder([0, 0, 2.0], [0, 1, 0], 0.2, 3.0, 2)],
+        sigma=sigma, declared=sigma, seed=3,
+    )
+    plane = _interior(ids, 1, seg)
+    cyl = _interior(ids, 2, seg)
+    assert np.mean(seg.hk_class[plane] == SurfaceType.PLANAR) > 0.95
+    assert np.mean(seg.hk_class[cyl] == SurfaceType.CYLINDRICAL) > 0.85
+    # propagated sigmas are calibrated (Monte Carlo over pixels): H / sigma_H on a plane ~ N(0, 1)
+    zH = seg.H[plane] / seg.sigma_H[plane]
+    assert 0.75 < np.std(zH) < 1.3
+    zK = seg.K[cyl] / seg.sigma_K[cyl]
+    assert 0.6 < np.std(zK) < 1.4
+
+
+def test_multi_part_scene_hoover_perfect():
+    cam = S.Camera(240, 320, 290.0)
+    sigma = 5e-4
+    surfaces = [
+        S.plane([0, 0, 4.0], [0, 0, -1.0], 1),
+        S.cylinder([-0.6, 0, 3.0], [0, 1, 0], 0.15, 1.2, 2),
+        S.sphere([0.4, 0.2, 2.6], 0.25, 3),
+        S.plane([0, 0.9, 0], [0, -1, 0], 4),
+    ]
+    seg, pts, ids = _seg(surfaces, sigma=sigma, camera=cam, declared=sigma, seed=1)
+    truth = connected_truth_regions(ids)
+    score = hoover_score(seg.labels, truth, 0.8, min_truth_pixels=200)
+    assert score.n_truth == 4
+    assert score.correct_detection_rate == 1.0, (score.truth_class, score.machine_class)
+    by_id = {}
+    for sid in (1, 2, 3, 4):
+        lab = np.bincount(seg.labels[ids == sid][seg.labels[ids == sid] >= 0]).argmax()
+        by_id[sid] = seg.patches[lab]
+    assert by_id[1].surface_type == SurfaceType.PLANAR and isinstance(by_id[1].fit, PlaneFit)
+    assert np.allclose(by_id[1].fit.normal, [0, 0, -1], atol=2e-3)
+    assert by_id[1].fit.d == pytest.approx(-4.0, abs=2e-3)
+    assert by_id[2].surface_type == SurfaceType.CYLINDRICAL
+    assert by_id[3].surface_type in (SurfaceType.ELLIPTIC, SurfaceType.CYLINDRICAL)
+    for sid in (2, 3):
+        assert isinstance(by_id[sid].fit, QuadricSurfaceFit)
+    for p in by_id.values():
+        assert p.fit.rms_sigma < 1.3 and not p.noisy
+    # jump edges separate the objects from the wall
+    assert (seg.edges & EdgeType.JUMP).any()
+    # patch bookkeeping
+    for p in seg.patches:
+        assert np.all(seg.labels[p.pixels[:, 0], p.pixels[:, 1]] == p.id)
+        assert p.n_pixels == len(p.pixels) == np.sum(seg.labels == p.id)
+
+
+def test_jump_windows_do_not_cross_the_step():
+    surfaces = [S.plane([0, 0, 2.0], [0, 0, -1.0], 1, half_extent=0.4), S.plane([0, 0, 2.6], [0, 0, -1.0], 2)]
+    seg, pts, ids = _seg(surfaces, sigma=3e-4, declared=3e-4, seed=2)
+    near_step = ndi.binary_dilation(ids == 1, iterations=3) & ~ndi.binary_erosion(ids == 1, iterations=3)
+    m = near_step & np.isfinite(seg.H)
+    # no fake curvature next to the depth step: the windows exclude the other side
+    assert np.mean(seg.hk_class[m] == SurfaceType.PLANAR) > 0.9
+    assert np.all((seg.edges[ids == 1] & EdgeType.JUMP)[~ndi.binary_erosion(ids == 1, iterations=1)[ids == 1]])
+    score = hoover_score(seg.labels, connected_truth_regions(ids), 0.9)
+    assert score.correct_detection_rate == 1.0
+
+
+def test_crease_between_planes_gives_two_patches():
+    # a roof: two planes meeting along a vertical line at x = 0, z = 2
+    n1, n2 = np.array([1.0, 0, -1.0]), np.array([-1.0, 0, -1.0])
+    s1 = S.Surface(lambda d: _halfplane(d, n1, x_sign=-1), 1)
+    s2 = S.Surface(lambda d: _halfplane(d, n2, x_sign=1), 2)
+    seg, pts, ids = _seg([s1, s2], sigma=3e-4, declared=3e-4, seed=4)
+    score = hoover_score(seg.labels, connected_truth_regions(ids), 0.8)
+    assert score.correct_detection_rate == 1.0
+    assert (seg.edges & EdgeType.CREASE).any()
+
+
+def _halfplane(d, n, x_sign):
+    n = n / np.linalg.norm(n)
+    p0 = np.array([0, 0, 2.0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (p0 @ n) / (d @ n)
+    x = t * d[..., 0]
+    return np.where((t > 0) & (x * x_sign >= 0), t, np.inf)
+
+
+def test_small_patches_are_kept_and_flagged():
+    surfaces = [S.plane([0, 0, 3.0], [0, 0, -1.0], 1), S.sphere([0.3, 0.0, 2.5], 0.06, 2)]
+    seg, pts, ids = _seg(surfaces, sigma=3e-4, declared=3e-4, seed=5)
+    small = [p for p in seg.patches if p.small]
+    assert small, "the tiny sphere must give a small patch"
+    on_sphere = seg.labels[ids == 2]
+    assert np.mean(on_sphere >= 0) > 0.8
+    assert all(seg.patches[k].small for k in np.unique(on_sphere[on_sphere >= 0]))
+
+
+def test_noisy_patches_are_flagged_not_dropped():
+    # true noise 10x the declared sigma: the patches remain, flagged noisy
+    seg, pts, ids = _seg([S.plane([0, 0, 2.0], [0, 0, -1.0], 1)], sigma=2e-3, declared=2e-4, seed=6)
+    assert seg.n_patches >= 1
+    assert any(p.noisy for p in seg.patches)
+    assert np.mean(seg.labels >= 0) > 0.5
+
+
+def test_segmentation_is_deterministic():
+    a, _, _ = _seg([S.sphere([0, 0, 2.0], 0.5, 1)], sigma=5e-4, declared=5e-4, seed=7)
+    b, _, _ = _seg([S.sphere([0, 0, 2.0], 0.5, 1)], sigma=5e-4, declared=5e-4, seed=7)
+    assert np.array_equal(a.labels, b.labels) and np.array_equal(a.hk_class, b.hk_class)
+
+
+# ----------------------------------------------------------------------------------- inputs and params
+
+
+@pytest.mark.parametrize(
+    "shape, msg",
+    [((4, 5), r"expected points of shape \(H, W, 3\), got \(4, 5\)"),
+     ((4, 5, 2), r"expected points of shape \(H, W, 3\), got \(4, 5, 2\)"),
+     ((0, 5, 3), r"expected points of shape \(H, W, 3\)")],
+)
+def test_bad_point_shapes(shape, msg):
+    with pytest.raises(ValueError, match=msg):
+        segment(np.zeros(shape), np.zeros(shape[:2]))
+
+
+def test_bad_sigma():
+    with pytest.raises(ValueError, match="expected sigma of shape"):
+        segment(np.ones((4, 5, 3)), np.ones((5, 4)))
+    with pytest.raises(ValueError, match="sigma must be >= 0"):
+        segment(np.ones((4, 5, 3)), -np.ones((4, 5)))
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (10, 12), (3, 200)])
+def test_empty_images(shape):
+    seg = segment(np.full(shape + (3,), np.nan), np.full(shape, np.nan))
+    assert seg.n_patches == 0 and np.all(seg.labels == -1) and seg.labels.dtype == np.int32
+    assert seg.hk_class.dtype == np.int8 and seg.edges.dtype == np.uint8
+    assert seg.H.shape == shape and np.all(np.isnan(seg.K))
+
+
+def test_one_pixel_image_with_a_return():
+    seg = segment(np.array([[[0.0, 0.0, 2.0]]]), np.array([[1e-3]]))
+    assert seg.n_patches == 0 and seg.labels.shape == (1, 1)
+
+
+@pytest.mark.parametrize(
+    "kwargs, msg",
+    [({"window": 6}, "window must be an odd integer"), ({"window": 1}, "window"), ({"window": -3}, "window"),
+     ({"zero_k": 0}, "zero_k"), ({"merge_k": -1.0}, "merge_k"), ({"jump_tan": -1}, "jump_tan"),
+     ({"sigma_floor_m": 0}, "sigma_floor_m"), ({"min_patch_pixels": 0}, "min_patch_pixels"),
+     ({"connectivity": 6}, "connectivity"), ({"seed_erosion": -1}, "seed_erosion"),
+     ({"crease_min_angle": 4.0}, "crease_min_angle"), ({"max_fit_points": 5}, "max_fit_points")],
+)
+def test_param_validation(kwargs, msg):
+    with pytest.raises(ValueError, match=msg):
+        SegmentationParams(**kwargs)
+
+
+def test_params_defaults_and_window_choice():
+    p = SegmentationParams()
+    assert p.window % 2 == 1 and p.erosion == p.window // 2
+    seg, _, ids = _seg([S.sphere([0, 0, 2.0], 0.5, 1)], params=SegmentationParams(window=5))
+    m = _interior(ids, 1, seg)
+    assert np.median(np.abs(seg.H[m] + 2.0)) < 0.05
+
+
+# ----------------------------------------------------------------------------------- derivative filters
+
+
+def test_fast_separable_path_equals_masked_reference():
+    pts, sig, ids = S.render([S.sphere([0, 0, 2.0], 0.6, 1)], CAM, 5e-4, np.random.default_rng(8))
+    sig = np.where(np.isfinite(sig), 5e-4, np.nan)
+    der = D.quadratic_derivatives(pts, sig, 7, 4.0, 5.0)
+    assert der.full.sum() > 1000
+    H, W = sig.shape
+    outs = tuple(np.full((H, W, 3), np.nan) for _ in range(5)) + (
+        np.full((H, W), np.nan), np.full((H, W), np.nan), np.full((H, W, 6), np.nan))
+    rng = D.norm3(pts)
+    valid = np.isfinite(rng)
+    D._masked_fits(pts, sig, rng, pts / rng[..., None], valid, der.full, 7, 4.0, 5.0, 9, np.inf, 4096, outs)
+    f = der.full
+    for fast, slow in zip((der.Pu, der.Pv, der.Puu, der.Puv, der.Pvv), outs[:5], strict=True):
+        assert np.allclose(fast[f], slow[f], rtol=1e-7, atol=1e-12)
+    assert np.allclose(der.var_u[f], outs[5][f]) and np.allclose(der.cov2[f], outs[7][f], atol=1e-12)
+
+
+def test_spd_inverse_matches_numpy():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(50, 6, 6))
+    M = A @ A.transpose(0, 2, 1) + 0.1 * np.eye(6)
+    assert np.allclose(D.spd_inverse(M), np.linalg.inv(M), rtol=1e-8, atol=1e-10)
+
+
+def test_savgol_kernels_exact_on_quadratics():
+    k = D.savgol_kernels(7)
+    t = np.arange(-3, 4, dtype=float)
+    f = 0.7 + 1.3 * t - 0.4 * t**2
+    assert np.dot(k["d1"], f) == pytest.approx(1.3)
+    assert np.dot(k["d2"], f) == pytest.approx(-0.4)
+
+
+# ----------------------------------------------------------------------------------- surface fits
+
+
+def test_fit_plane_recovers_and_covariance_matches_monte_carlo():
+    rng = np.random.default_rng(1)
+    n_true = np.array([0.2, -0.1, -1.0])
+    n_true /= np.linalg.norm(n_true)
+    uv = rng.uniform(-0.3, 0.3, size=(200, 2))
+    base = np.column_stack([uv, np.full(200, 2.0)])
+    base[:, 2] = (-1.5 - n_true[0] * base[:, 0] - n_true[1] * base[:, 1]) / n_true[2]
+    normals, ds, covs = [], [], []
+    for _ in range(300):
+        x = base + 1e-3 * rng.standard_normal(base.shape)
+        fit = fit_plane(x)
+        normals.append(fit.normal)
+        ds.append(fit.d)
+        covs.append(fit.cov)
+    normals = np.array(normals)
+    assert np.allclose(normals.mean(axis=0), n_true, atol=1e-3)
+    assert np.mean(ds) == pytest.approx(-1.5, abs=1e-3)
+    emp = np.cov(np.column_stack([normals, ds]).T)
+    pred = np.mean(covs, axis=0)
+    ratio = np.diag(emp)[[0, 1, 3]] / np.diag(pred)[[0, 1, 3]]
+    assert np.all((ratio > 0.7) & (ratio < 1.4)), ratio
+
+
+@pytest.mark.parametrize("pts, reason", [(np.zeros((2, 3)), "fewer than 3"),
+                                         (np.column_stack([np.arange(5.0)] * 3), "collinear")])
+def test_fit_plane_degenerate(pts, reason):
+    fit = fit_plane(pts)
+    assert not fit and reason in fit.reason
+
+
+def test_fit_quadric_lsq_sphere_and_degenerate():
+    rng = np.random.default_rng(2)
+    d = rng.normal(size=(400, 3))
+    d[:, 2] = -np.abs(d[:, 2])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    x = np.array([0.1, 0.0, 3.0]) + 0.4 * d
+    fit = fit_quadric_lsq(x, np.full(len(x), 1e-3))
+    assert fit.ok and fit.rms_m < 1e-9
+    A, b, c = fit.A, fit.b, fit.c
+    centre = -0.5 * np.linalg.solve(A, b)
+    assert np.allclose(centre, [0.1, 0.0, 3.0], atol=1e-8)
+    assert np.sqrt(centre @ A @ centre - c) / np.sqrt(A[0, 0]) == pytest.approx(0.4, abs=1e-8)
+    # sign gauge: f > 0 on the sensor side
+    assert np.sum(fit.params * np.r_[0, 0, 0, 0, 0, 0, 0, 0, 0, 1.0]) > 0  # f(origin) > 0
+    assert np.allclose(fit.cov @ fit.params, 0, atol=1e-12)
+    _, ray, z = ray_residuals(fit.params, x + np.array([0, 0, 1e-3]), np.full(len(x), 1e-3))
+    assert np.all(np.isfinite(z))
+    bad = fit_quadric_lsq(x[:5])
+    assert not bad and "fewer than 10" in bad.reason
+    with pytest.raises(ValueError, match=r"expected points of shape \(N, 3\)"):
+        fit_quadric_lsq(np.zeros((20, 2)))
