@@ -1,0 +1,82 @@
+"""Classification metrics over patches: accuracy, per-class precision and recall, confusion matrix,
+multi-class Brier score and a reliability table (DESIGN 7 and 10.8).
+
+Classes are the paper's PLAN, CYL, SPH, CONE, OTH. Each patch takes the truth class of the surface it
+mostly covers.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+CLASSES = ("PLAN", "CYL", "SPH", "CONE", "OTH")
+
+
+def confusion_matrix(truth: Sequence[str], predicted: Sequence[str], classes: Sequence[str] = CLASSES) -> np.ndarray:
+    """Counts (C, C): rows are truth classes, columns predicted classes."""
+    index = {c: i for i, c in enumerate(classes)}
+    m = np.zeros((len(classes), len(classes)), dtype=np.int64)
+    for t, p in zip(truth, predicted, strict=True):
+        m[index[t], index[p]] += 1
+    return m
+
+
+def accuracy(truth: Sequence[str], predicted: Sequence[str]) -> float | None:
+    """Fraction of patches labelled with their truth class (None for no patches)."""
+    if not len(truth):
+        return None
+    return float(np.mean([t == p for t, p in zip(truth, predicted, strict=True)]))
+
+
+def per_class(confusion: np.ndarray, classes: Sequence[str] = CLASSES) -> dict[str, dict[str, float | int | None]]:
+    """Precision, recall and support (truth count) per class from a confusion matrix (None when undefined)."""
+    out: dict[str, dict[str, float | int | None]] = {}
+    for i, c in enumerate(classes):
+        tp = int(confusion[i, i])
+        predicted = int(confusion[:, i].sum())
+        support = int(confusion[i].sum())
+        out[c] = {"precision": tp / predicted if predicted else None, "recall": tp / support if support else None,
+                  "support": support}
+    return out
+
+
+def brier_score(truth: Sequence[str], probabilities: np.ndarray, classes: Sequence[str] = CLASSES) -> float | None:
+    """Multi-class Brier score: mean over patches of sum_c (p_c - [c = truth])^2, in [0, 2].
+
+    Parameters
+    ----------
+    probabilities : ndarray of shape (N, C), rows summing to 1, columns in ``classes`` order.
+    """
+    if not len(truth):
+        return None
+    p = np.asarray(probabilities, dtype=np.float64)
+    onehot = np.zeros_like(p)
+    onehot[np.arange(len(truth)), [classes.index(t) for t in truth]] = 1.0
+    return float(np.mean(np.sum((p - onehot) ** 2, axis=1)))
+
+
+def reliability_table(truth: Sequence[str], predicted: Sequence[str], confidence: Sequence[float],
+                      bins: int = 10) -> list[dict[str, float | int]]:
+    """Calibration of the winning class's probability: per confidence bin, the mean confidence, the
+    accuracy and the count (empty bins omitted)."""
+    conf = np.asarray(confidence, dtype=np.float64)
+    correct = np.array([t == p for t, p in zip(truth, predicted, strict=True)], dtype=float)
+    edges = np.linspace(0, 1, bins + 1)
+    idx = np.clip(np.digitize(conf, edges) - 1, 0, bins - 1)
+    rows = []
+    for b in range(bins):
+        sel = idx == b
+        if sel.any():
+            rows.append({"low": float(edges[b]), "high": float(edges[b + 1]), "confidence": float(conf[sel].mean()),
+                         "accuracy": float(correct[sel].mean()), "count": int(sel.sum())})
+    return rows
+
+
+def expected_calibration_error(table: list[dict[str, float | int]]) -> float | None:
+    """Count-weighted mean |confidence - accuracy| over the reliability table's bins."""
+    n = sum(r["count"] for r in table)
+    if not n:
+        return None
+    return float(sum(r["count"] * abs(r["confidence"] - r["accuracy"]) for r in table) / n)

@@ -1,0 +1,79 @@
+"""Per-trial evaluation of a scene description against the scan's truth: Hoover segmentation scores and
+per-patch classification records (truth class of the surface each patch mostly covers, invariant errors)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from evaluation.hoover import DEFAULT_SWEEP, connected_truth_regions, hoover_score, hoover_sweep
+from scenes.features import Cone, Cylinder, Sphere
+from scenes.model import SceneModel
+from sensors.range_image import ScanTruth
+
+TOLERANCE = 0.8
+MIN_TRUTH_PIXELS = 200
+
+
+def truth_regions(truth: ScanTruth, valid: np.ndarray) -> np.ndarray:
+    """Connected pieces of each truth surface over the pixels that returned a range (-1 elsewhere)."""
+    ids = np.where(valid, truth.surface_id, -1)
+    return connected_truth_regions(ids)
+
+
+def segmentation_section(labels: np.ndarray, truth: ScanTruth, valid: np.ndarray) -> dict[str, Any]:
+    """Hoover rates at T = 0.8 over truth regions of >= 200 pixels, plus the sweep over T in [0.51, 0.95]."""
+    regions = truth_regions(truth, valid)
+    score = hoover_score(labels, regions, TOLERANCE, min_truth_pixels=MIN_TRUTH_PIXELS)
+    out = {k: float(v) if isinstance(v, float | np.floating) else v for k, v in score.as_dict().items()}
+    out["min_truth_pixels"] = MIN_TRUTH_PIXELS
+    out["n_truth"] = int(score.n_truth)
+    out["n_machine"] = int(score.n_machine)
+    out["sweep"] = [{"tolerance": float(t), **{k: float(getattr(s, k)) for k in
+                                                ("correct_detection_rate", "over_rate", "under_rate", "missed_rate",
+                                                 "noise_rate")}}
+                    for t, s in zip(DEFAULT_SWEEP, hoover_sweep(labels, regions, DEFAULT_SWEEP,
+                                                                 min_truth_pixels=MIN_TRUTH_PIXELS), strict=True)]
+    return out
+
+
+def patch_truth(pixels: np.ndarray, surface_id_flat: np.ndarray) -> tuple[int, float]:
+    """The truth surface a patch mostly covers (-1 = none) and the fraction of its pixels on it."""
+    ids = surface_id_flat[pixels]
+    values, counts = np.unique(ids, return_counts=True)
+    k = int(np.argmax(counts))
+    return int(values[k]), float(counts[k] / len(ids))
+
+
+def classification_section(description, truth: ScanTruth, actual: SceneModel) -> dict[str, Any]:
+    """One record per patch: truth class and feature, label, probabilities, and invariant errors."""
+    sid = truth.surface_id.reshape(-1)
+    rows = []
+    for patch in description.patches:
+        s, frac = patch_truth(patch.pixels, sid)
+        surf = truth.surfaces[s] if s >= 0 else None
+        cls = patch.classification
+        row: dict[str, Any] = {
+            "patch": int(patch.id), "n_pixels": int(patch.n_pixels),
+            "truth": surf.truth_class if surf else "OTH", "truth_feature": surf.feature_id if surf else None,
+            "truth_part": surf.part if surf else None, "truth_fraction": frac,
+            "label": cls.label, "probabilities": {k: float(v) for k, v in cls.probabilities.items()},
+            "plausibilities": {k: float(v) for k, v in cls.plausibilities.items()},
+            "reason": cls.reason, "small": bool(patch.small), "noisy": bool(patch.noisy),
+        }
+        if surf is not None and "radius_m" in cls.invariants and surf.part in ("side", "surface"):
+            true_r = _true_radius(actual.feature(surf.feature_id))
+            if true_r is not None:
+                r, r_sigma = cls.invariants["radius_m"]
+                row["radius"] = {"estimate_m": float(r), "sigma_m": float(r_sigma), "truth_m": true_r}
+        rows.append(row)
+    return {"patches": rows}
+
+
+def _true_radius(feature) -> float | None:
+    if isinstance(feature, Cylinder | Sphere):
+        return float(feature.radius)
+    if isinstance(feature, Cone):
+        return None  # a cone's radius varies along the patch; its half-angle is compared instead
+    return None

@@ -1,0 +1,77 @@
+"""``harness bench``: run a benchmark suite into a results directory and write its summary and report."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from harness.run import RunOptions, run_suite
+from harness.suite import load_suite, shipped_suites
+
+NAME = "bench"
+HELP = "run a benchmark suite (default: the shipped 'default' suite)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--suite", default="default",
+                        help=f"shipped suite name ({', '.join(shipped_suites())}) or a suite YAML file")
+    parser.add_argument("--out", type=Path, help="results directory (default: runs/<suite>-<timestamp>)")
+    parser.add_argument("--workers", type=int, help="local worker processes (default: all cores)")
+    parser.add_argument("--resume", action="store_true", help="complete an interrupted run, skipping finished trials")
+    parser.add_argument("--overwrite", action="store_true", help="discard the trial records already in --out")
+    parser.add_argument("--only", action="append", default=[], metavar="TRIAL_ID", help="run only this trial")
+    parser.add_argument("--artifacts", action="store_true", help="write per-trial images and range data")
+    parser.add_argument("--timeout", type=float, help="per-trial timeout in seconds (default: the suite's)")
+    parser.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="run on this Dask scheduler")
+    parser.add_argument("--dask-local", type=int, metavar="N", help="start a Dask LocalCluster of N workers")
+    parser.add_argument("--no-report", action="store_true", help="do not render report.html / report.md")
+    parser.add_argument("--progress", choices=("auto", "bar", "log"), default="auto")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.workers is not None and args.workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+    if args.dask_local is not None and args.dask_local < 1:
+        raise ValueError(f"--dask-local must be >= 1, got {args.dask_local}")
+    if args.timeout is not None and not args.timeout > 0:
+        raise ValueError(f"--timeout must be > 0, got {args.timeout}")
+    suite = load_suite(args.suite)
+    out = args.out or Path("runs") / f"{suite.name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    options = RunOptions(workers=args.workers, resume=args.resume, only=tuple(args.only), artifacts=args.artifacts,
+                         scheduler=args.scheduler, dask_local=args.dask_local, timeout_s=args.timeout,
+                         progress={"auto": None, "bar": True, "log": False}[args.progress],
+                         overwrite=args.overwrite)
+    summary = run_suite(suite, out, options)
+    if not args.no_report:
+        _report(out)
+    print(headline(summary, out))
+    return 0
+
+
+def _report(out: Path) -> None:
+    try:
+        from reports.render import render_report
+    except ModuleNotFoundError:
+        return  # reports not built yet
+    render_report(out)
+
+
+def headline(summary: dict, out: Path) -> str:
+    """A few lines for the terminal: trials, failures, and each section's key figure."""
+    lines = [f"{out}: {summary['n_trials']} trials, {summary['n_failed']} failed"
+             + ("" if summary.get("complete", True) else " (incomplete)")]
+    seg, cls, pose, chg = (summary.get(k) for k in ("segmentation", "classification", "pose", "change"))
+    fmt = {"segmentation": seg and f"correct detection {seg['correct_detection_rate']:.3f} at T={seg['tolerance']}",
+           "classification": cls and cls["accuracy"] is not None and f"accuracy {cls['accuracy']:.3f} "
+           f"({cls['n_patches']} patches)",
+           "pose": pose and pose["success_rate"] is not None and f"success {pose['success_rate']:.3f}",
+           "change": chg and chg["macro_f1"] is not None and f"macro-F1 {chg['macro_f1']:.3f}"}
+    for k, v in fmt.items():
+        lines.append(f"  {k:15s} {v or 'not built yet (null)'}")
+    t = summary.get("timing_s", {}).get("total")
+    if t:
+        lines.append(f"  {'time/trial':15s} median {t['median']:.2f} s, p90 {t['p90']:.2f} s")
+    lines.append(f"  summary: {out / 'summary.json'}")
+    return "\n".join(lines) + ("\n" + json.dumps(summary["failures"][:5]) if summary["failures"] else "")

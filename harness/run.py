@@ -1,0 +1,137 @@
+"""Running a suite into a results directory: resume, progress, summary; local or on a Dask cluster."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TextIO
+
+from harness.execute import run_dask, run_local
+from harness.provenance import provenance
+from harness.store import RunDirectory, write_json_atomic
+from harness.suite import Suite, TrialSpec
+from harness.summary import summarise
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How to run a suite (all optional)."""
+
+    workers: int | None = None
+    resume: bool = False
+    only: tuple[str, ...] = ()
+    artifacts: bool = False
+    scheduler: str | None = None
+    dask_local: int | None = None
+    timeout_s: float | None = None
+    progress: bool | None = None  # None: a progress bar on a terminal, log lines otherwise
+    overwrite: bool = False
+
+
+class Progress:
+    """A one-line progress bar with ETA on a terminal, plain log lines otherwise."""
+
+    def __init__(self, total: int, stream: TextIO = sys.stderr, bar: bool | None = None):
+        self.total, self.stream = total, stream
+        self.bar = stream.isatty() if bar is None else bar
+        self.done = self.failed = 0
+        self.t0 = time.perf_counter()
+
+    def update(self, record: dict[str, Any]) -> None:
+        self.done += 1
+        self.failed += record.get("status") != "ok"
+        elapsed = time.perf_counter() - self.t0
+        eta = elapsed / self.done * (self.total - self.done)
+        if self.bar:
+            width = 30
+            fill = int(width * self.done / max(self.total, 1))
+            self.stream.write(f"\r[{'#' * fill}{'.' * (width - fill)}] {self.done}/{self.total} "
+                              f"failed {self.failed}  {elapsed:5.0f} s  ETA {eta:5.0f} s ")
+            if self.done == self.total:
+                self.stream.write("\n")
+        else:
+            status = "ok" if record.get("status") == "ok" else f"FAILED: {record.get('reason', '')}"
+            self.stream.write(f"[{self.done}/{self.total}] {record['trial_id']}: {status} "
+                              f"({(record.get('timing_s') or {}).get('total') or 0:.2f} s, ETA {eta:.0f} s)\n")
+        self.stream.flush()
+
+
+def run_suite(suite: Suite, out: Path, options: RunOptions = RunOptions(), log: TextIO = sys.stderr) -> dict:
+    """Run ``suite`` into ``out`` and return the summary (also written to ``out/summary.json``).
+
+    Finished trials are written one by one as they complete; on Ctrl-C the children are killed, the
+    summary of what finished is written, and KeyboardInterrupt propagates. ``resume`` skips trials already
+    recorded with the same configuration hash.
+    """
+    config_hash = suite.config_hash
+    specs: list[TrialSpec] = list(suite.trials)
+    if options.only:
+        unknown = sorted(set(options.only) - {t.trial_id for t in specs})
+        if unknown:
+            raise ValueError(f"--only: no trial {unknown[0]!r} in suite {suite.name!r}")
+        specs = [t for t in specs if t.trial_id in options.only]
+    with RunDirectory(out) as run_dir:
+        done = run_dir.finished(config_hash) if options.resume else set()
+        todo = [t for t in specs if t.trial_id not in done]
+        existing = sorted(run_dir.trials_dir.glob("*.json"))
+        if existing and not options.resume:
+            if not options.overwrite:
+                raise FileExistsError(f"{out} already holds {len(existing)} trial record(s): use --resume to complete "
+                                      "that run, --overwrite to discard it, or another --out")
+            for p in existing:
+                p.unlink()
+        prov = provenance()
+        write_json_atomic(out / "run.json", {"schema": "harness.run/1", "suite": suite.name, "source": suite.source,
+                                             "config_hash": config_hash, "suite_config": suite.raw,
+                                             "trials": [t.trial_id for t in suite.trials], "provenance": prov})
+        workers = options.workers or os.cpu_count() or 1
+        timeout = options.timeout_s or suite.timeout_s
+        artifacts_root = out / "artifacts"
+
+        def artifacts(spec: TrialSpec) -> str | None:
+            return str(artifacts_root / spec.trial_id) if options.artifacts else None
+
+        log.write(f"suite {suite.name}: {len(specs)} trials ({len(specs) - len(todo)} already done), "
+                  f"{'dask' if options.scheduler or options.dask_local else f'{workers} local worker(s)'} -> {out}\n")
+        progress = Progress(len(todo), log, options.progress)
+        t0 = time.perf_counter()
+        try:
+            for record in _execute(todo, suite, options, workers, timeout, str(run_dir.cache_dir), artifacts):
+                record["config_hash"] = config_hash
+                run_dir.write_trial(record)
+                progress.update(record)
+        finally:
+            wall = time.perf_counter() - t0
+            records = run_dir.read_trials([t.trial_id for t in specs])
+            complete = len(records) == len(specs)
+            summary = summarise(records, suite=suite.name, config_hash=config_hash, version=prov["version"],
+                                methods=list(suite.methods), extra={
+                                    "complete": complete, "n_planned": len(specs), "provenance": prov,
+                                    "run": {"wall_s": wall, "workers": workers, "n_run": progress.done,
+                                            "trials_per_minute": 60 * progress.done / wall if wall > 0 else None}})
+            write_json_atomic(out / "summary.json", summary)
+    return summary
+
+
+def _execute(todo, suite, options, workers, timeout, cache_dir, artifacts):
+    if options.scheduler or options.dask_local:
+        from distributed import Client, LocalCluster
+
+        if options.scheduler:
+            client = Client(options.scheduler, timeout="30s")
+            cluster = None
+        else:
+            cluster = LocalCluster(n_workers=options.dask_local, threads_per_worker=1, processes=True,
+                                   dashboard_address=None, silence_logs=40)
+            client = Client(cluster)
+        try:
+            yield from run_dask(todo, suite.methods, timeout, client, cache_dir, artifacts)
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    else:
+        yield from run_local(todo, suite.methods, timeout, workers, cache_dir, artifacts)

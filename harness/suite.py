@@ -1,0 +1,202 @@
+"""Benchmark suites: YAML (schema ``suite/1``) expanded into trials.
+
+A suite lists scene groups; each group is a scene (shipped name or file) with a perturbation spec and
+seeds, a sensor (preset name or file), a number of viewpoints and noise seeds. A trial is
+(scene, perturbation seed, viewpoint, sensor preset, noise seed) (DESIGN 10.4); every method of the
+suite runs on the same trial and image::
+
+    schema: suite/1
+    name: smoke
+    seed: 2026
+    timeout_s: 120
+    methods: {core: {classifier: select}, paper: {classifier: paper}}
+    groups:
+      - scene: mockup                      # shipped scene name, or a path to a scene YAML
+        perturbation: mockup_perturbation  # shipped spec name, path, or omitted for no changes
+        perturbation_seeds: [0]
+        sensor: mockup_laser               # preset name or sensor YAML
+        viewpoints: 2                      # per perturbation seed
+        noise_seeds: [0]
+        max_range: 4.0                     # optional: clip the sensor's range (e.g. kinect_like < 4 m)
+        sweep: {noise_scale: [0.5, 1.0, 2.0]}   # optional: each value is a group of its own (DESIGN 10.13)
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from scenes.config import ConfigError, Fields, load_yaml
+from scenes.generator import DATA_DIR as SCENE_DATA
+
+SUITES_DIR = Path(__file__).parent / "suites"
+METHODS = ("core", "paper")
+SWEEPABLE = ("noise_scale", "footprint_rays", "max_range")
+
+
+@dataclass(frozen=True)
+class TrialSpec:
+    """One trial: everything needed to run it, in plain data (it crosses process boundaries)."""
+
+    trial_id: str
+    index: int
+    group: str
+    scene: str
+    scene_file: str
+    perturbation_file: str | None
+    perturbation_seed: int
+    viewpoint: int
+    sensor: str
+    noise_seed: int
+    suite_seed: int
+    min_view_pixels: int = 200
+    min_view_surfaces: int = 4
+    overrides: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class Suite:
+    """A validated suite and where it came from."""
+
+    name: str
+    source: str
+    seed: int
+    timeout_s: float
+    methods: dict[str, dict[str, Any]]
+    trials: tuple[TrialSpec, ...]
+    raw: dict[str, Any]
+
+    @property
+    def config_hash(self) -> str:
+        """SHA-256 of the canonical JSON of the suite and of every file it refers to."""
+        h = hashlib.sha256(json.dumps(self.raw, sort_keys=True, default=str).encode())
+        files = sorted({t.scene_file for t in self.trials} | {t.perturbation_file for t in self.trials if
+                                                              t.perturbation_file})
+        for f in files:
+            h.update(Path(f).read_bytes())
+        return h.hexdigest()[:16]
+
+
+def shipped_suites() -> list[str]:
+    return sorted(p.stem for p in SUITES_DIR.glob("*.yaml"))
+
+
+def resolve_suite_path(name_or_file: str) -> Path:
+    """A shipped suite by name (``default``, ``smoke``...) or a path to a suite YAML."""
+    path = Path(name_or_file)
+    if path.suffix in (".yaml", ".yml") or path.exists():
+        if not path.exists():
+            raise FileNotFoundError(f"suite file not found: {path}")
+        return path
+    shipped = SUITES_DIR / f"{name_or_file}.yaml"
+    if not shipped.exists():
+        raise FileNotFoundError(f"no shipped suite {name_or_file!r} (known: {', '.join(shipped_suites())})")
+    return shipped
+
+
+def _resolve_data(f: Fields, key: str, value: str, base: Path) -> str:
+    """A shipped scene/spec name or a path (relative to the suite file)."""
+    for cand in (SCENE_DATA / f"{value}.yaml", base / value, Path(value)):
+        if cand.is_file():
+            return str(cand.resolve())
+    raise f.error(key, f"no shipped file named {value!r} and no such file")
+
+
+def load_suite(name_or_file: str) -> Suite:
+    path = resolve_suite_path(name_or_file)
+    return suite_from_dict(load_yaml(path), str(path), base=path.parent)
+
+
+def suite_from_dict(data: Any, source: str = "<suite>", base: Path = Path(".")) -> Suite:
+    from sensors.config import load_sensor  # validated here so a bad preset fails before any trial runs
+
+    root = Fields(data, source)
+    schema = root.string("schema", "suite/1")
+    if schema != "suite/1":
+        raise root.error("schema", f"unsupported schema {schema!r} (expected 'suite/1')")
+    name = root.string("name", Path(source).stem)
+    seed = root.integer("seed", 0, min=0)
+    timeout_s = root.number("timeout_s", 300.0, positive=True)
+    methods_f = root.sub("methods", {"core": {}})
+    methods: dict[str, dict[str, Any]] = {}
+    for m in methods_f.data:
+        if m not in METHODS:
+            raise methods_f.error(str(m), f"unknown method (known: {', '.join(METHODS)})")
+        params = methods_f.raw(m)
+        if params is not None and not isinstance(params, dict):
+            raise methods_f.error(str(m), "expected a mapping of parameters")
+        methods[m] = dict(params or {})
+    if "core" not in methods:
+        raise methods_f.error(None, "the suite must run the 'core' method")
+    trials: list[TrialSpec] = []
+    groups = root.list_of_fields("groups")
+    if not groups:
+        raise root.error("groups", "a suite needs at least one group")
+    for g in groups:
+        scene_name = g.string("scene")
+        scene_file = _resolve_data(g, "scene", scene_name, base)
+        pert = g.raw("perturbation", None)
+        pert_file = _resolve_data(g, "perturbation", pert, base) if pert is not None else None
+        pseeds = _int_list(g, "perturbation_seeds", [0])
+        nseeds = _int_list(g, "noise_seeds", [0])
+        n_views = g.integer("viewpoints", 1, min=1, max=10_000)
+        sensor = g.string("sensor")
+        try:
+            load_sensor(sensor if not (base / sensor).is_file() else str(base / sensor))
+        except (ConfigError, ValueError, FileNotFoundError) as exc:
+            raise g.error("sensor", str(exc)) from None
+        sensor_ref = str((base / sensor).resolve()) if (base / sensor).is_file() else sensor
+        overrides: dict[str, float] = {}
+        if g.has("max_range"):
+            overrides["max_range"] = g.number("max_range", positive=True)
+        sweep = g.sub("sweep", {})
+        sweep_values: list[tuple[str, list[float]]] = []
+        for key in sweep.data:
+            if key not in SWEEPABLE:
+                raise sweep.error(str(key), f"cannot sweep this (sweepable: {', '.join(SWEEPABLE)})")
+            vals = sweep.raw(key)
+            if not isinstance(vals, list) or not vals:
+                raise sweep.error(str(key), "expected a non-empty list of values")
+            sweep_values.append((str(key), [_positive(sweep, str(key), v) for v in vals]))
+        label = g.string("label", f"{Path(scene_name).stem}/{Path(sensor).stem}")
+        min_pixels = g.integer("min_view_pixels", 200, min=1)
+        min_surfaces = g.integer("min_view_surfaces", 4, min=0)
+        g.check_unknown()
+        combos = list(itertools.product(*[[(k, v) for v in vals] for k, vals in sweep_values])) or [()]
+        for combo in combos:
+            ov = {**overrides, **dict(combo)}
+            group = label + "".join(f"[{k}={v:g}]" for k, v in combo)
+            for ps, vp, ns in itertools.product(pseeds, range(n_views), nseeds):
+                tid = f"{Path(scene_name).stem}-p{ps}-v{vp}-{Path(sensor).stem}-n{ns}" + \
+                      "".join(f"-{k}{v:g}" for k, v in combo)
+                trials.append(TrialSpec(tid, len(trials), group, Path(scene_name).stem, scene_file, pert_file, ps,
+                                        vp, sensor_ref, ns, seed, min_pixels, min_surfaces, ov))
+    ids = [t.trial_id for t in trials]
+    if len(set(ids)) != len(ids):
+        dup = sorted({i for i in ids if ids.count(i) > 1})[0]
+        raise root.error("groups", f"two groups produce the same trial id {dup!r}: give them distinct labels")
+    root.check_unknown()
+    return Suite(name, source, seed, timeout_s, methods, tuple(trials), data)
+
+
+def _positive(f: Fields, key: str, v: Any) -> float:
+    from scenes.config import check_number
+
+    return check_number(v, f.source, f.child_path(key), positive=True)
+
+
+def _int_list(f: Fields, key: str, default: list[int]) -> list[int]:
+    vals = f.raw(key, default)
+    if not isinstance(vals, list) or not vals or any(isinstance(v, bool) or not isinstance(v, int) or v < 0
+                                                     for v in vals):
+        raise f.error(key, f"expected a non-empty list of non-negative integers, got {vals!r}")
+    if len(set(vals)) != len(vals):
+        raise f.error(key, "values must be distinct")
+    return list(vals)
