@@ -7,8 +7,9 @@ same isolated call to the cluster's workers (each forks its own child), so resul
 
 from __future__ import annotations
 
-import multiprocessing as mp
 import os
+import pickle
+import select
 import signal
 import threading
 import time
@@ -22,6 +23,7 @@ from harness.suite import TrialSpec
 
 _CHILDREN: set[int] = set()
 _CHILDREN_LOCK = threading.Lock()
+_FORK_LOCK = threading.Lock()
 
 
 def failed_record(spec: TrialSpec, reason: str, detail: str = "", elapsed: float | None = None) -> dict[str, Any]:
@@ -29,20 +31,15 @@ def failed_record(spec: TrialSpec, reason: str, detail: str = "", elapsed: float
             "detail": detail, "spec": spec.to_dict(), "timing_s": {"total": elapsed}, "methods": {}}
 
 
-def _child(conn, spec: TrialSpec, methods: dict, prepared, artifacts_dir: str | None) -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C means
-    try:
-        from harness.trial import TrialFailure, run_trial
+def _child_record(spec: TrialSpec, methods: dict, prepared, artifacts_dir: str | None) -> dict[str, Any]:
+    from harness.trial import TrialFailure, run_trial
 
-        try:
-            rec = run_trial(spec, methods, prepared, Path(artifacts_dir) if artifacts_dir else None)
-        except TrialFailure as exc:
-            rec = failed_record(spec, str(exc))
-        conn.send(rec)
+    try:
+        return run_trial(spec, methods, prepared, Path(artifacts_dir) if artifacts_dir else None)
+    except TrialFailure as exc:
+        return failed_record(spec, str(exc))
     except BaseException as exc:  # noqa: BLE001 - everything a trial raises is recorded, not re-raised
-        conn.send(failed_record(spec, f"{type(exc).__name__}: {exc}", traceback.format_exc(limit=8)))
-    finally:
-        conn.close()
+        return failed_record(spec, f"{type(exc).__name__}: {exc}", traceback.format_exc(limit=8))
 
 
 def run_isolated(spec: TrialSpec, methods: dict, timeout_s: float, cache_dir: str | None = None,
@@ -50,50 +47,89 @@ def run_isolated(spec: TrialSpec, methods: dict, timeout_s: float, cache_dir: st
     """Run one trial in a forked child; return its record, or a failed record on crash or timeout.
 
     The trial's scene is prepared (perturbed, compiled) in this process first and cached here, so the
-    forked children of later trials of the same scene inherit it instead of redoing it.
+    forked children of later trials of the same scene inherit it instead of redoing it. The child is a
+    plain ``os.fork`` (Dask workers are daemonic processes, which multiprocessing forbids to have children)
+    and sends its pickled record back through a pipe.
     """
     from harness.trial import prepare_scene
 
+    t_prepare = time.perf_counter()
     try:
         prepared = prepare_scene(spec, Path(cache_dir) if cache_dir else None)
+        t_prepare = time.perf_counter() - t_prepare
     except Exception as exc:  # noqa: BLE001 - a scene that cannot be prepared fails its trials, not the run
         return failed_record(spec, f"scene preparation failed: {type(exc).__name__}: {exc}",
                              traceback.format_exc(limit=8))
-    ctx = mp.get_context("fork")
-    recv, send = ctx.Pipe(duplex=False)
     t0 = time.perf_counter()
-    # the child receives the prepared scene through fork's copy of memory, never through a lock that another
-    # thread of this process might hold at the time of the fork
-    proc = ctx.Process(target=_child, args=(send, spec, methods, prepared, artifacts_dir), daemon=True)
-    proc.start()
-    send.close()
+    # pipe, fork and the parent's close of the write end happen under a lock: a sibling forked by another
+    # thread in between would inherit this write end and hide the child's death (no EOF)
+    with _FORK_LOCK:
+        read_fd, write_fd = os.pipe()
+        pid = os.fork()
+        if pid != 0:
+            os.close(write_fd)
+    if pid == 0:  # the child: run, send, and leave without running the parent's exit handlers
+        code = 0
+        try:
+            os.close(read_fd)
+            signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C means
+            # the prepared scene reaches the child through fork's copy of memory, never through a lock
+            # that another thread of the parent might hold at the time of the fork
+            data = pickle.dumps(_child_record(spec, methods, prepared, artifacts_dir))
+            with os.fdopen(write_fd, "wb") as f:
+                f.write(data)
+        except BaseException:  # noqa: BLE001
+            code = 1
+        finally:
+            os._exit(code)
     with _CHILDREN_LOCK:
-        _CHILDREN.add(proc.pid)
+        _CHILDREN.add(pid)
     try:
-        record = None
-        if recv.poll(timeout_s):
-            try:
-                record = recv.recv()
-            except EOFError:
-                record = None  # the child died before sending
-        proc.join(timeout=5.0 if record is not None else 0.5)
+        chunks, timed_out = [], False
+        deadline = t0 + timeout_s
+        while True:
+            remaining = deadline - time.perf_counter()
+            if remaining <= 0:
+                timed_out = True
+                break
+            ready, _, _ = select.select([read_fd], [], [], remaining)
+            if not ready:
+                continue
+            chunk = os.read(read_fd, 1 << 20)
+            if not chunk:
+                break
+            chunks.append(chunk)
         elapsed = time.perf_counter() - t0
-        if record is not None:
-            return record
-        if proc.is_alive():
-            proc.kill()
-            proc.join()
+        if timed_out:
+            _kill(pid)
             return failed_record(spec, f"timed out after {timeout_s:g} s", elapsed=elapsed)
-        code = proc.exitcode
-        how = f"killed by signal {-code}" if code is not None and code < 0 else f"exit code {code}"
+        _, status = os.waitpid(pid, 0)
+        if chunks:
+            try:
+                record = pickle.loads(b"".join(chunks))
+            except Exception:  # noqa: BLE001 - a truncated record is a crashed trial
+                record = None
+            if record is not None:
+                record.setdefault("timing_s", {})["prepare"] = t_prepare
+                record["timing_s"]["isolated"] = elapsed
+                return record
+        if os.WIFSIGNALED(status):
+            how = f"killed by signal {os.WTERMSIG(status)}"
+        else:
+            how = f"exit code {os.WEXITSTATUS(status)}"
         return failed_record(spec, f"worker process died ({how})", elapsed=elapsed)
     finally:
-        if proc.is_alive():
-            proc.kill()
-            proc.join()
-        recv.close()
+        os.close(read_fd)
         with _CHILDREN_LOCK:
-            _CHILDREN.discard(proc.pid)
+            _CHILDREN.discard(pid)
+
+
+def _kill(pid: int) -> None:
+    try:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+    except (ProcessLookupError, ChildProcessError):
+        pass
 
 
 def kill_children() -> None:

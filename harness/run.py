@@ -110,10 +110,23 @@ def run_suite(suite: Suite, out: Path, options: RunOptions = RunOptions(), log: 
             summary = summarise(records, suite=suite.name, config_hash=config_hash, version=prov["version"],
                                 methods=list(suite.methods), extra={
                                     "complete": complete, "n_planned": len(specs), "provenance": prov,
-                                    "run": {"wall_s": wall, "workers": workers, "n_run": progress.done,
-                                            "trials_per_minute": 60 * progress.done / wall if wall > 0 else None}})
+                                    "run": _throughput(records, progress.done, wall, workers)})
             write_json_atomic(out / "summary.json", summary)
     return summary
+
+
+def _throughput(records: list[dict], n_run: int, wall: float, workers: int) -> dict[str, Any]:
+    """Wall time, trials per minute, and the runner's overhead: the share of the workers' time spent
+    neither preparing scenes nor inside trials (fork, transfer, writing, scheduling)."""
+    work = sum((r.get("timing_s") or {}).get("total") or 0.0 for r in records)
+    prepare = sum((r.get("timing_s") or {}).get("prepare") or 0.0 for r in records)
+    isolated = sum((r.get("timing_s") or {}).get("isolated") or 0.0 for r in records)
+    return {"wall_s": wall, "workers": workers, "n_run": n_run,
+            "trials_per_minute": 60 * n_run / wall if wall > 0 else None,
+            "trial_work_s": work, "prepare_s": prepare,
+            "isolation_overhead_fraction": (isolated - work) / work if work > 0 else None,
+            "overhead_fraction": (wall * min(workers, max(n_run, 1)) - work - prepare) / work
+            if work > 0 and n_run == len(records) else None}
 
 
 def _execute(todo, suite, options, workers, timeout, cache_dir, artifacts):

@@ -93,3 +93,20 @@ def _view_stats(views: list[dict[str, Any]]) -> dict[str, Any] | None:
     return {"viewpoint_rejection_rate": stats([v["viewpoint_rejection_rate"] for v in views]),
             "valid_fraction": stats([v["valid_fraction"] for v in views]),
             "surfaces_seen": stats([v["surfaces_seen"] for v in views])}
+
+
+VOLATILE = ("timing_s", "provenance", "run", "version")
+
+
+def comparable(summary: dict[str, Any]) -> dict[str, Any]:
+    """The summary without what legitimately differs between identical runs (times, provenance): equal
+    configs and seeds must give equal ``comparable`` summaries (DESIGN 10.4)."""
+
+    def strip(node: Any) -> Any:
+        if isinstance(node, dict):
+            return {k: strip(v) for k, v in node.items() if k not in VOLATILE}
+        if isinstance(node, list):
+            return [strip(v) for v in node]
+        return node
+
+    return strip(summary)

@@ -1,0 +1,238 @@
+"""The runner: determinism, crash isolation, kill and resume, Dask equals local, locking, compare."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from harness.cli import main
+from harness.compare import Tolerances, compare, load_summary, regressions
+from harness.run import RunOptions, run_suite
+from harness.store import RunDirectory, RunLockedError
+from harness.suite import load_suite
+from harness.summary import comparable
+from scenes import ConfigError
+
+SENSOR = """
+schema: sensor/1
+name: tiny
+pinhole: {width: 160, height: 120, fov_deg: 40.0, min_range: 0.3, max_range: 2.5}
+noise:
+  range: {model: ray, s0_m: 1.0e-4, s2_per_m: 1.0e-4, max_incidence_deg: 80}
+  footprint: {rays: 2, radius_px: 0.5, min_return_fraction: 0.5, mixed_threshold_sigma: 3}
+  outliers: {rate: 2.0e-4}
+"""
+
+SUITE = """
+schema: suite/1
+name: tiny
+seed: 3
+timeout_s: 60
+methods: {core: {}, paper: {}}
+groups:
+  - scene: mockup
+    perturbation: mockup_perturbation
+    perturbation_seeds: [0]
+    sensor: tiny_sensor.yaml
+    viewpoints: 3
+    noise_seeds: [0]
+    min_view_pixels: 50
+    min_view_surfaces: 3
+"""
+
+
+@pytest.fixture()
+def tiny_suite(tmp_path):
+    (tmp_path / "tiny_sensor.yaml").write_text(SENSOR)
+    path = tmp_path / "tiny.yaml"
+    path.write_text(SUITE)
+    return path
+
+
+def _run(suite_path, out, **kw):
+    return run_suite(load_suite(str(suite_path)), out, RunOptions(workers=kw.pop("workers", 2), progress=False, **kw),
+                     log=open(os.devnull, "w"))
+
+
+def test_two_runs_give_identical_summaries_and_trials(tiny_suite, tmp_path):
+    a = _run(tiny_suite, tmp_path / "a")
+    b = _run(tiny_suite, tmp_path / "b", workers=1)
+    assert a["n_trials"] == 3 and a["n_failed"] == 0, a["failures"]
+    assert comparable(a) == comparable(b)
+    for p in (tmp_path / "a" / "trials").glob("*.json"):
+        ra, rb = json.loads(p.read_text()), json.loads((tmp_path / "b" / "trials" / p.name).read_text())
+        for r in (ra, rb):
+            r.pop("timing_s")
+            for m in r["methods"].values():
+                m.pop("timing_s")
+        assert ra == rb
+    # the summary has the contract's keys, with stages not built yet as null
+    for key in ("schema", "suite", "n_trials", "n_failed", "config_hash", "version", "segmentation",
+                "classification", "pose", "change", "timing_s", "baselines", "groups"):
+        assert key in a
+    assert set(a["baselines"]) == {"paper"}
+    assert a["segmentation"] is not None and a["classification"] is not None
+
+
+def test_failures_are_recorded_and_the_run_goes_on(tiny_suite, tmp_path, monkeypatch):
+    import harness.trial as trial
+
+    real = trial.run_trial
+
+    def faulty(spec, *args, **kw):
+        if spec.viewpoint == 0:
+            raise RuntimeError("injected failure")
+        if spec.viewpoint == 1:
+            time.sleep(30)
+        if spec.viewpoint == 2:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return real(spec, *args, **kw)
+
+    monkeypatch.setattr(trial, "run_trial", faulty)
+    summary = _run(tiny_suite, tmp_path / "f", timeout_s=3.0, workers=3)
+    reasons = {f["trial_id"].split("-")[2]: f["reason"] for f in summary["failures"]}
+    assert summary["n_failed"] == 3
+    assert "RuntimeError: injected failure" in reasons["v0"]
+    assert reasons["v1"] == "timed out after 3 s"
+    assert "worker process died (killed by signal 9)" in reasons["v2"]
+    rec = json.loads((tmp_path / "f" / "trials" / "mockup-p0-v0-tiny_sensor-n0.json").read_text())
+    assert rec["status"] == "failed" and "injected failure" in rec["detail"]
+
+
+def test_killed_run_resumes_without_redoing_finished_trials(tiny_suite, tmp_path):
+    out = tmp_path / "k"
+    cmd = [sys.executable, "-m", "harness", "bench", "--suite", str(tiny_suite), "--out", str(out), "--workers", "1",
+           "--no-report", "--progress", "log"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and len(list((out / "trials").glob("*.json"))) < 1:
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    finished = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in (out / "trials").glob("*.json")}
+    assert 1 <= len(finished) < 3
+    assert main(["bench", "--suite", str(tiny_suite), "--out", str(out), "--resume", "--workers", "1",
+                 "--no-report", "--progress", "log"]) == 0
+    assert not list(out.rglob(".*.tmp"))
+    for name, (data, mtime) in finished.items():  # finished trials kept bit-identical, not rerun
+        p = out / "trials" / name
+        assert p.read_bytes() == data and p.stat().st_mtime_ns == mtime
+    resumed = load_summary(out)
+    straight = _run(tiny_suite, tmp_path / "straight")
+    assert resumed["n_trials"] == 3 and resumed["complete"]
+    assert comparable(resumed) == comparable(straight)
+
+
+def test_dask_local_cluster_equals_local_run(tiny_suite, tmp_path):
+    pytest.importorskip("distributed")
+    local = _run(tiny_suite, tmp_path / "local")
+    dask = _run(tiny_suite, tmp_path / "dask", dask_local=2)
+    assert dask["n_failed"] == 0, dask["failures"]
+    assert comparable(dask) == comparable(local)
+
+
+def test_an_existing_run_is_neither_mixed_nor_lost(tiny_suite, tmp_path):
+    out = tmp_path / "x"
+    _run(tiny_suite, out, only=("mockup-p0-v0-tiny_sensor-n0",))
+    with pytest.raises(FileExistsError, match="already holds 1 trial record"):
+        _run(tiny_suite, out)
+    with RunDirectory(out):
+        with pytest.raises(RunLockedError, match="another run is writing here"):
+            _run(tiny_suite, out, resume=True)
+    with pytest.raises(ValueError, match="--only: no trial 'nope'"):
+        _run(tiny_suite, out, only=("nope",), resume=True)
+
+
+@pytest.mark.parametrize("edit, message", [
+    ("methods: {core: {}, paper: {}}", "methods: {magic: {}}"),
+    ("sensor: tiny_sensor.yaml", "sensor: no_such_preset"),
+    ("viewpoints: 3", "viewpoints: 0"),
+    ("noise_seeds: [0]", "noise_seeds: [0, 0]"),
+    ("scene: mockup", "scene: atlantis"),
+])
+def test_suite_validation_errors(tiny_suite, edit, message):
+    text = tiny_suite.read_text()
+    bad = tiny_suite.with_name("bad.yaml")
+    bad.write_text(text.replace(edit, message))
+    with pytest.raises((ConfigError, FileNotFoundError)) as info:
+        load_suite(str(bad))
+    assert str(bad) in str(info.value)
+
+
+def test_cli_bench_bad_input_exit_codes(tmp_path, capsys):
+    assert main(["bench", "--suite", "no_such_suite", "--out", str(tmp_path / "o")]) == 2
+    assert "no shipped suite 'no_such_suite'" in capsys.readouterr().err
+    assert main(["bench", "--suite", "smoke", "--workers", "0", "--out", str(tmp_path / "o")]) == 2
+
+
+def _summary(**sections):
+    base = {"schema": "harness.summary/1", "suite": "s", "n_trials": 4, "n_failed": 0, "config_hash": "x",
+            "version": "0", "segmentation": {"correct_detection_rate": 0.9, "over_rate": 0.05, "tolerance": 0.8},
+            "classification": {"accuracy": 0.95, "brier": 0.08},
+            "pose": {"success_rate": 1.0, "rotation_error_deg": {"median": 0.02, "p90": 0.05, "max": 0.1}},
+            "change": None, "timing_s": {"total": {"median": 1.0, "p90": 2.0}}, "baselines": {}, "groups": {}}
+    for k, v in sections.items():
+        base[k] = v
+    return base
+
+
+def test_compare_rules_and_exit_codes(tmp_path, capsys):
+    base = _summary()
+    assert regressions(compare(base, _summary())) == []
+    worse = _summary(classification={"accuracy": 0.90, "brier": 0.08})
+    bad = regressions(compare(base, worse))
+    assert [r.metric for r in bad] == ["classification.accuracy"]
+    assert regressions(compare(base, _summary(classification={"accuracy": 0.94, "brier": 0.08}))) == []
+    assert [r.metric for r in regressions(compare(base, _summary(pose=None)))] == ["pose"]
+    slower = _summary(timing_s={"total": {"median": 5.0, "p90": 9.0}})
+    assert regressions(compare(base, slower)) == []  # time rules are off unless asked
+    assert regressions(compare(base, slower, Tolerances(check_time=True)))
+    err = _summary(pose={"success_rate": 1.0, "rotation_error_deg": {"median": 0.05, "p90": 0.05, "max": 0.1}})
+    assert [r.metric for r in regressions(compare(base, err))] == ["pose.rotation_error_deg.median"]
+    better = _summary(segmentation={"correct_detection_rate": 0.95, "over_rate": 0.01, "tolerance": 0.8})
+    assert {r.verdict for r in compare(base, better) if r.metric.startswith("segmentation.")} >= {"improved"}
+
+    for name, s in (("base", base), ("worse", worse)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "summary.json").write_text(json.dumps(s))
+    assert main(["compare", str(tmp_path / "base"), str(tmp_path / "base")]) == 0
+    assert main(["compare", str(tmp_path / "base"), str(tmp_path / "worse"), "--format", "md"]) == 1
+    out = capsys.readouterr().out
+    assert "| classification.accuracy | 0.95 | 0.9 | -0.05 | higher | REGRESSION |" in out and "FAIL" in out
+    (tmp_path / "junk.json").write_text("{not json")
+    assert main(["compare", str(tmp_path / "base"), str(tmp_path / "junk.json")]) == 2
+    assert main(["compare", str(tmp_path / "base"), str(tmp_path / "missing")]) == 2
+
+
+def test_shipped_suites_load():
+    for name in ("smoke", "default"):
+        suite = load_suite(name)
+        assert suite.trials and suite.methods["core"] is not None
+        assert len({t.trial_id for t in suite.trials}) == len(suite.trials)
+    groups = {t.group for t in load_suite("default").trials}
+    assert {"mockup/mockup_laser", "factory_bay/factory_scanner", "factory_bay/kinect_like"} <= groups
+
+
+def test_store_writes_atomically_and_cleans_temporaries(tmp_path):
+    from harness.store import write_json_atomic
+
+    with RunDirectory(tmp_path / "r") as rd:
+        (rd.trials_dir / ".x.json.123.tmp").write_text("partial")
+        rd.write_trial({"trial_id": "t", "config_hash": "h"})
+        assert rd.finished("h") == {"t"} and rd.finished("other") == set()
+    with RunDirectory(tmp_path / "r") as rd:
+        assert not list(rd.trials_dir.glob(".*.tmp"))
+    target = tmp_path / "f.json"
+    write_json_atomic(target, {"a": 1})
+    with pytest.raises(ValueError):
+        write_json_atomic(target, {"a": float("nan")})
+    assert json.loads(target.read_text()) == {"a": 1}
+    assert not list(tmp_path.glob(".*.tmp"))
+    Path(tmp_path / "r" / "trials" / "broken.json").write_text("{")
+    with RunDirectory(tmp_path / "r") as rd:
+        assert rd.finished("h") == {"t"}  # an unreadable record is redone, not trusted
