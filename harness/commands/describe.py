@@ -128,7 +128,8 @@ def patch_dict(patch, shape: tuple[int, int]) -> dict:
         "bbox_rows_cols": [int(rows.min()), int(rows.max()), int(cols.min()), int(cols.max())] if len(rows) else None,
         "centroid_m": _plain(np.mean(patch.points, axis=0)) if len(patch.points) else None,
         "probabilities": _plain(c.probabilities), "plausibilities": _plain(c.plausibilities),
-        "invariants": {k: {"value": _plain(float(v[0])), "sigma": _plain(float(v[1]))} for k, v in c.invariants.items()},
+        "invariants": {k: {"value": _plain(float(v[0])), "sigma": _plain(float(v[1]))}
+                       for k, v in c.invariants.items()},
         "primitive": primitive_dict(c.primitive), "reason": c.reason,
     }
 
@@ -154,7 +155,8 @@ def _main_parameter(patch) -> str:
     if "radius_m" in inv:
         return f"r = {1e3 * inv['radius_m'][0]:.1f} ± {1e3 * inv['radius_m'][1]:.1f} mm"
     if "half_angle_rad" in inv:
-        return f"half-angle = {math.degrees(inv['half_angle_rad'][0]):.1f} ± {math.degrees(inv['half_angle_rad'][1]):.1f} deg"
+        a, sa = (math.degrees(x) for x in inv["half_angle_rad"])
+        return f"half-angle = {a:.1f} ± {sa:.1f} deg"
     if prim is not None and hasattr(prim, "normal"):
         n = np.asarray(prim.normal)
         return f"n = ({n[0]:.3f}, {n[1]:.3f}, {n[2]:.3f})"
