@@ -10,15 +10,20 @@ import numpy as np
 from evaluation.hoover import DEFAULT_SWEEP, connected_truth_regions, hoover_score, hoover_sweep
 from scenes.features import Cone, Cylinder, Sphere
 from scenes.model import SceneModel
-from sensors.range_image import ScanTruth
+from sensors.range_image import FLAG_MIXED, FLAG_OUTLIER, ScanTruth
 
 TOLERANCE = 0.8
 MIN_TRUTH_PIXELS = 200
 
 
 def truth_regions(truth: ScanTruth, valid: np.ndarray) -> np.ndarray:
-    """Connected pieces of each truth surface over the pixels that returned a range (-1 elsewhere)."""
-    ids = np.where(valid, truth.surface_id, -1)
+    """Connected pieces of each truth surface over the pixels that measured it (-1 elsewhere).
+
+    Pixels without a return, and mixed pixels and outliers (whose measured point lies on no surface: a
+    blend across a depth edge, or a random range), belong to no truth region.
+    """
+    measured = valid & ((truth.flags & (FLAG_MIXED | FLAG_OUTLIER)) == 0)
+    ids = np.where(measured, truth.surface_id, -1)
     return connected_truth_regions(ids)
 
 

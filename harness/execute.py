@@ -19,7 +19,7 @@ from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from pathlib import Path
 from typing import Any
 
-from harness.suite import TrialSpec
+from harness.suite import TrialPlan, TrialSpec
 
 _CHILDREN: set[int] = set()
 _CHILDREN_LOCK = threading.Lock()
@@ -31,18 +31,18 @@ def failed_record(spec: TrialSpec, reason: str, detail: str = "", elapsed: float
             "detail": detail, "spec": spec.to_dict(), "timing_s": {"total": elapsed}, "methods": {}}
 
 
-def _child_record(spec: TrialSpec, methods: dict, prepared, artifacts_dir: str | None) -> dict[str, Any]:
+def _child_record(spec: TrialSpec, plan: TrialPlan, prepared, artifacts_dir: str | None) -> dict[str, Any]:
     from harness.trial import TrialFailure, run_trial
 
     try:
-        return run_trial(spec, methods, prepared, Path(artifacts_dir) if artifacts_dir else None)
+        return run_trial(spec, plan, prepared, Path(artifacts_dir) if artifacts_dir else None)
     except TrialFailure as exc:
         return failed_record(spec, str(exc))
     except BaseException as exc:  # noqa: BLE001 - everything a trial raises is recorded, not re-raised
         return failed_record(spec, f"{type(exc).__name__}: {exc}", traceback.format_exc(limit=8))
 
 
-def run_isolated(spec: TrialSpec, methods: dict, timeout_s: float, cache_dir: str | None = None,
+def run_isolated(spec: TrialSpec, plan: TrialPlan, timeout_s: float, cache_dir: str | None = None,
                  artifacts_dir: str | None = None) -> dict[str, Any]:
     """Run one trial in a forked child; return its record, or a failed record on crash or timeout.
 
@@ -75,7 +75,7 @@ def run_isolated(spec: TrialSpec, methods: dict, timeout_s: float, cache_dir: st
             signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C means
             # the prepared scene reaches the child through fork's copy of memory, never through a lock
             # that another thread of the parent might hold at the time of the fork
-            data = pickle.dumps(_child_record(spec, methods, prepared, artifacts_dir))
+            data = pickle.dumps(_child_record(spec, plan, prepared, artifacts_dir))
             with os.fdopen(write_fd, "wb") as f:
                 f.write(data)
         except BaseException:  # noqa: BLE001
@@ -143,7 +143,7 @@ def kill_children() -> None:
             pass
 
 
-def run_local(specs: list[TrialSpec], methods: dict, timeout_s: float, workers: int, cache_dir: str | None,
+def run_local(specs: list[TrialSpec], plan: TrialPlan, timeout_s: float, workers: int, cache_dir: str | None,
               artifacts: Callable[[TrialSpec], str | None]) -> Iterator[dict[str, Any]]:
     """Yield trial records as they finish, running up to ``workers`` trials at once."""
     pending = iter(specs)
@@ -151,7 +151,7 @@ def run_local(specs: list[TrialSpec], methods: dict, timeout_s: float, workers: 
         running = set()
         try:
             for spec in pending:
-                running.add(pool.submit(run_isolated, spec, methods, timeout_s, cache_dir, artifacts(spec)))
+                running.add(pool.submit(run_isolated, spec, plan, timeout_s, cache_dir, artifacts(spec)))
                 if len(running) >= workers:
                     done, running = wait(running, return_when=FIRST_COMPLETED)
                     for fut in done:
@@ -167,12 +167,12 @@ def run_local(specs: list[TrialSpec], methods: dict, timeout_s: float, workers: 
             raise
 
 
-def run_dask(specs: list[TrialSpec], methods: dict, timeout_s: float, client, cache_dir: str | None,
+def run_dask(specs: list[TrialSpec], plan: TrialPlan, timeout_s: float, client, cache_dir: str | None,
              artifacts: Callable[[TrialSpec], str | None]) -> Iterator[dict[str, Any]]:
     """Yield trial records from a Dask cluster (each worker forks an isolated child per trial)."""
     from distributed import as_completed
 
-    futures = {client.submit(run_isolated, s, methods, timeout_s, cache_dir, artifacts(s), key=f"trial-{s.trial_id}",
+    futures = {client.submit(run_isolated, s, plan, timeout_s, cache_dir, artifacts(s), key=f"trial-{s.trial_id}",
                              pure=False): s for s in specs}
     try:
         for fut in as_completed(futures):

@@ -108,7 +108,7 @@ def run_suite(suite: Suite, out: Path, options: RunOptions = RunOptions(), log: 
             records = run_dir.read_trials([t.trial_id for t in specs])
             complete = len(records) == len(specs)
             summary = summarise(records, suite=suite.name, config_hash=config_hash, version=prov["version"],
-                                methods=list(suite.methods), extra={
+                                methods=list(suite.methods), oracles=list(suite.oracles), extra={
                                     "complete": complete, "n_planned": len(specs), "provenance": prov,
                                     "run": _throughput(records, progress.done, wall, workers)})
             write_json_atomic(out / "summary.json", summary)
@@ -141,10 +141,10 @@ def _execute(todo, suite, options, workers, timeout, cache_dir, artifacts):
                                    dashboard_address=None, silence_logs=40)
             client = Client(cluster)
         try:
-            yield from run_dask(todo, suite.methods, timeout, client, cache_dir, artifacts)
+            yield from run_dask(todo, suite.plan, timeout, client, cache_dir, artifacts)
         finally:
             client.close()
             if cluster is not None:
                 cluster.close()
     else:
-        yield from run_local(todo, suite.methods, timeout, workers, cache_dir, artifacts)
+        yield from run_local(todo, suite.plan, timeout, workers, cache_dir, artifacts)

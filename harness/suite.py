@@ -35,6 +35,7 @@ from scenes.generator import DATA_DIR as SCENE_DATA
 
 SUITES_DIR = Path(__file__).parent / "suites"
 METHODS = ("core", "paper")
+ORACLES = ("segmentation", "classification", "pairing", "pose")
 SWEEPABLE = ("noise_scale", "footprint_rays", "max_range")
 
 
@@ -62,6 +63,14 @@ class TrialSpec:
 
 
 @dataclass(frozen=True)
+class TrialPlan:
+    """What runs on every trial: the methods (core, paper, peers) and the stage-isolating oracles."""
+
+    methods: dict[str, dict[str, Any]]
+    oracles: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
 class Suite:
     """A validated suite and where it came from."""
 
@@ -72,6 +81,11 @@ class Suite:
     methods: dict[str, dict[str, Any]]
     trials: tuple[TrialSpec, ...]
     raw: dict[str, Any]
+    oracles: tuple[str, ...] = ()
+
+    @property
+    def plan(self) -> TrialPlan:
+        return TrialPlan(self.methods, self.oracles)
 
     @property
     def config_hash(self) -> str:
@@ -135,6 +149,9 @@ def suite_from_dict(data: Any, source: str = "<suite>", base: Path = Path(".")) 
         methods[m] = dict(params or {})
     if "core" not in methods:
         raise methods_f.error(None, "the suite must run the 'core' method")
+    oracles = root.raw("oracles", [])
+    if not isinstance(oracles, list) or any(o not in ORACLES for o in oracles) or len(set(oracles)) != len(oracles):
+        raise root.error("oracles", f"expected a list of distinct oracles from {', '.join(ORACLES)}, got {oracles!r}")
     trials: list[TrialSpec] = []
     groups = root.list_of_fields("groups")
     if not groups:
@@ -183,7 +200,7 @@ def suite_from_dict(data: Any, source: str = "<suite>", base: Path = Path(".")) 
         dup = sorted({i for i in ids if ids.count(i) > 1})[0]
         raise root.error("groups", f"two groups produce the same trial id {dup!r}: give them distinct labels")
     root.check_unknown()
-    return Suite(name, source, seed, timeout_s, methods, tuple(trials), data)
+    return Suite(name, source, seed, timeout_s, methods, tuple(trials), data, tuple(oracles))
 
 
 def _positive(f: Fields, key: str, v: Any) -> float:

@@ -29,33 +29,33 @@ SECTIONS: dict[str, Callable[[list[dict]], dict | None]] = {
 }
 
 
-def method_sections(records: list[dict[str, Any]], method: str) -> dict[str, Any]:
-    """The DESIGN 8 sections (segmentation ... timing_s) of one method over ``records``."""
-    ok = [r for r in records if r.get("status") == "ok" and method in r.get("methods", {})]
+def method_sections(records: list[dict[str, Any]], method: str, kind: str = "methods") -> dict[str, Any]:
+    """The DESIGN 8 sections (segmentation ... timing_s) of one method (or oracle) over ``records``."""
+    ok = [r for r in records if r.get("status") == "ok" and method in r.get(kind, {})]
     out: dict[str, Any] = {}
     for name, agg in SECTIONS.items():
-        per_trial = [r["methods"][method].get(name) for r in ok]
+        per_trial = [r[kind][method].get(name) for r in ok]
         present = [p for p in per_trial if p is not None]
         out[name] = agg(present) if present else None
-    out["timing_s"] = timing(ok, method)
+    out["timing_s"] = timing(ok, method, kind)
     return out
 
 
-def timing(records: list[dict[str, Any]], method: str) -> dict[str, Any]:
+def timing(records: list[dict[str, Any]], method: str, kind: str = "methods") -> dict[str, Any]:
     """Median and p90 seconds per stage; ``sensor`` and ``total`` are per trial, the others per method."""
     out: dict[str, Any] = {}
     for key in TIMING_KEYS:
         if key in ("sensor", "total"):
             vals = [r["timing_s"].get(key) for r in records]
         else:
-            vals = [r["methods"][method].get("timing_s", {}).get(key) for r in records]
+            vals = [r[kind][method].get("timing_s", {}).get(key) for r in records]
         vals = [v for v in vals if v is not None]
         out[key] = {"median": float(np.median(vals)), "p90": float(np.percentile(vals, 90))} if vals else None
     return out
 
 
 def summarise(records: list[dict[str, Any]], *, suite: str, config_hash: str, version: str,
-              methods: list[str], extra: dict[str, Any] | None = None) -> dict[str, Any]:
+              methods: list[str], oracles: list[str] = (), extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """Build the summary dict from trial records (one per trial of the run)."""
     summary: dict[str, Any] = {
         "schema": SCHEMA,
@@ -67,6 +67,8 @@ def summarise(records: list[dict[str, Any]], *, suite: str, config_hash: str, ve
     }
     summary.update(method_sections(records, "core"))
     summary["baselines"] = {m: method_sections(records, m) for m in methods if m != "core"}
+    if oracles:
+        summary["oracles"] = {o: method_sections(records, o, "oracles") for o in oracles}
     by_group: dict[str, list[dict]] = defaultdict(list)
     for r in records:
         by_group[r["spec"]["group"]].append(r)
@@ -76,6 +78,8 @@ def summarise(records: list[dict[str, Any]], *, suite: str, config_hash: str, ve
         sec = {"n_trials": len(recs), "n_failed": sum(1 for r in recs if r.get("status") != "ok")}
         sec.update(method_sections(recs, "core"))
         sec["baselines"] = {m: method_sections(recs, m) for m in methods if m != "core"}
+        if oracles:
+            sec["oracles"] = {o: method_sections(recs, o, "oracles") for o in oracles}
         views = [r["view"] for r in recs if r.get("status") == "ok"]
         sec["view"] = _view_stats(views)
         summary["groups"][g] = sec

@@ -17,15 +17,25 @@ from typing import Any
 
 import numpy as np
 
+from evaluation.change import change_section
+from evaluation.oracles import truth_classification, truth_pairings, truth_segmentation
 from evaluation.patches import classification_section, segmentation_section
-from harness.suite import TrialSpec
-from recognition.describe import DescribeParams, describe
+from harness.suite import TrialPlan, TrialSpec
+from recognition.change import detect_changes
+from recognition.describe import DescribeParams, core_sigma, describe
+from recognition.predict import ModelPredictor
 from scenes.model import SceneModel
 from scenes.perturb import ChangeTruth, PerturbationSpec, perturb
 from sensors.config import SensorConfig, load_sensor
 from sensors.range_image import Scan, ScanTruth
 from sensors.simulate import Simulator
 from sensors.viewpoints import ViewpointSpec, sample_viewpoints
+
+try:  # the pose stage (issue 7) lands separately; until then its sections are null, never faked
+    from evaluation.pose import constrains_pose, pose_section
+    from recognition.localise import LocaliseParams, localise
+except ModuleNotFoundError:
+    constrains_pose = pose_section = LocaliseParams = localise = None
 
 TRIAL_SCHEMA = "harness.trial/1"
 STAGES = ("sensor", "segmentation", "classification", "matching", "icp", "change")
@@ -43,6 +53,15 @@ class PreparedScene:
     actual: SceneModel
     change_truth: ChangeTruth
     simulator: Simulator
+    predictor: ModelPredictor  # the a priori model compiled for prediction (what the core may cast)
+
+    @property
+    def model_points(self) -> np.ndarray:
+        """Points sampled on the a priori model (for the ADD pose metric), fixed seed."""
+        if not hasattr(self, "_model_points"):
+            rng = np.random.default_rng(0)
+            self._model_points = np.concatenate([f.sample(200, rng)[0] for f in self.apriori.features])
+        return self._model_points
 
 
 _SCENES: OrderedDict[tuple, PreparedScene] = OrderedDict()
@@ -86,7 +105,7 @@ def _prepare(spec: TrialSpec, cache_dir: Path | None) -> PreparedScene:
 
             write_text_atomic(actual_path, actual.to_yaml())
             write_text_atomic(truth_path, truth.to_json())
-    return PreparedScene(apriori, actual, truth, Simulator.from_scene(actual))
+    return PreparedScene(apriori, actual, truth, Simulator.from_scene(actual), ModelPredictor(apriori))
 
 
 def sensor_for(spec: TrialSpec) -> SensorConfig:
@@ -111,7 +130,7 @@ def viewpoint_rng(spec: TrialSpec) -> np.random.Generator:
     return np.random.default_rng([spec.suite_seed, key, spec.perturbation_seed, spec.viewpoint])
 
 
-def run_trial(spec: TrialSpec, methods: dict[str, dict[str, Any]], prepared: PreparedScene,
+def run_trial(spec: TrialSpec, plan: TrialPlan, prepared: PreparedScene,
               artifacts_dir: Path | None = None) -> dict[str, Any]:
     """Run one trial on its prepared scene and return its record (plain JSON data).
 
@@ -130,15 +149,22 @@ def run_trial(spec: TrialSpec, methods: dict[str, dict[str, Any]], prepared: Pre
     rng = np.random.default_rng([spec.suite_seed, spec.index])
     scan, truth = prepared.simulator.simulate(config, view.T_world_sensor, rng)
     timing["sensor"] = time.perf_counter() - t0
+    context = TrialContext(scan, truth, prepared)
     method_records = {}
-    shared_segmentation = None
-    for name, params in methods.items():
-        method_records[name], desc = run_method(name, params, scan, truth, prepared, shared_segmentation)
-        shared_segmentation = desc.segmentation
+    core_description = None
+    for name, params in plan.methods.items():
+        shared = core_description.segmentation if core_description is not None else None
+        method_records[name], desc = run_pipeline(context, method_params(name, params), segmentation=shared)
+        if core_description is None:
+            core_description = desc
+    oracle_records = {}
+    core_params = method_params("core", plan.methods.get("core", {}))
+    for oracle in plan.oracles:
+        oracle_records[oracle], _ = run_pipeline(context, core_params, oracle=oracle, core=core_description)
     if artifacts_dir is not None:
         write_artifacts(artifacts_dir, scan, truth)
     timing["total"] = time.perf_counter() - t_start
-    return {
+    record = {
         "schema": TRIAL_SCHEMA,
         "trial_id": spec.trial_id,
         "status": "ok",
@@ -147,10 +173,14 @@ def run_trial(spec: TrialSpec, methods: dict[str, dict[str, Any]], prepared: Pre
         "view": {"T_world_sensor": view.T_world_sensor.tolist(), "target_feature": view.target_feature,
                  "viewpoint_attempts": views.attempts, "viewpoint_rejection_rate": views.rejection_rate,
                  "valid_fraction": float(np.mean(scan.valid)),
-                 "surfaces_seen": int(sum(1 for n in view.surface_pixels.values() if n >= spec.min_view_pixels))},
+                 "surfaces_seen": int(sum(1 for n in view.surface_pixels.values() if n >= spec.min_view_pixels)),
+                 "median_range_m": context.median_range, "constrains_pose": context.constrained},
         "timing_s": timing,
         "methods": method_records,
     }
+    if plan.oracles:
+        record["oracles"] = oracle_records
+    return record
 
 
 def method_params(name: str, params: dict[str, Any]) -> DescribeParams:
@@ -162,25 +192,90 @@ def method_params(name: str, params: dict[str, Any]) -> DescribeParams:
     return DescribeParams(classifier=classifier)
 
 
-def run_method(name: str, params: dict[str, Any], scan: Scan, truth: ScanTruth, prepared: PreparedScene,
-               segmentation=None) -> tuple[dict[str, Any], Any]:
-    """Run one method's stages on the scan and evaluate each; a stage not built yet is null.
+class TrialContext:
+    """One trial's scan, truth and scene, with the truth-side quantities evaluation needs, computed once."""
 
-    ``segmentation`` may be shared between methods that differ only after it (``core`` and ``paper``):
-    the first method's segmentation is reused, and its time is reported for both.
+    def __init__(self, scan: Scan, truth: ScanTruth, prepared: PreparedScene):
+        self.scan, self.truth, self.prepared = scan, truth, prepared
+        self.median_range = float(np.nanmedian(truth.true_range)) if np.isfinite(truth.true_range).any() else None
+        self._apriori_at_truth = None
+        self.object_of = {f.id: o.id for m in (prepared.apriori, prepared.actual) for o in m.objects
+                          for f in o.features}
+        self.constrained = bool(constrains_pose(truth, prepared.actual)) if constrains_pose else None
+
+    @property
+    def apriori_at_truth(self):
+        """The a priori model cast from the true pose (observability of missing features)."""
+        if self._apriori_at_truth is None:
+            self._apriori_at_truth = self.prepared.predictor.predict(self.scan.sensor, self.truth.T_world_sensor)
+        return self._apriori_at_truth
+
+
+def run_pipeline(ctx: TrialContext, params: DescribeParams, segmentation=None, oracle: str | None = None,
+                 core=None) -> tuple[dict[str, Any], Any]:
+    """Run the core's stages on the scan, with at most one stage replaced by its oracle, and evaluate each.
+
+    ``segmentation`` (or, for oracles, the core's description ``core``) is reused where the stages before
+    the one that differs are the same: its time is then reported once, by the run that computed it.
     """
+    scan, truth, prepared = ctx.scan, ctx.truth, ctx.prepared
     timing: dict[str, float | None] = dict.fromkeys(STAGES[1:])
-    desc = describe(scan, method_params(name, params), segmentation)
-    timing["segmentation"] = desc.timing_s["segmentation"] if segmentation is None else None
-    timing["classification"] = desc.timing_s["classification"]
-    record = {
+    if oracle in ("pose", "pairing") and core is not None:
+        desc = core
+    else:
+        if oracle == "segmentation":
+            segmentation = truth_segmentation(scan, truth, core_sigma(scan))
+        elif oracle == "classification" and core is not None:
+            segmentation = core.segmentation
+        desc = describe(scan, params, segmentation)
+        timing["segmentation"] = desc.timing_s["segmentation"] if segmentation is None else None
+        timing["classification"] = desc.timing_s["classification"]
+        if oracle == "classification":
+            desc = truth_classification(desc, truth)
+    record: dict[str, Any] = {
         "segmentation": segmentation_section(desc.labels, truth, scan.valid),
         "classification": classification_section(desc, truth, prepared.actual),
         "pose": None,
         "change": None,
         "timing_s": timing,
     }
+    pose = estimate_pose(ctx, desc, oracle)
+    if pose is None:
+        return record, desc
+    T_est, cov, predicted, pose_record, pose_timing = pose
+    record["pose"] = pose_record
+    timing.update(pose_timing)
+    if T_est is not None:
+        t0 = time.perf_counter()
+        result = detect_changes(desc, scan, prepared.apriori, T_est, cov, predicted=predicted,
+                                predictor=prepared.predictor)
+        timing["change"] = time.perf_counter() - t0 - result.timing_s.get("predict", 0.0)
+        record["change"] = change_section(result, truth, prepared.change_truth, ctx.apriori_at_truth, ctx.object_of)
     return record, desc
+
+
+def estimate_pose(ctx: TrialContext, desc, oracle: str | None):
+    """``(T_world_sensor or None, covariance, predicted image, pose record, timings)``, or None when the
+    pose stage is not built yet. The ``pose`` oracle gives the true pose; ``pairing`` gives the truth
+    correspondences to the pose stage."""
+    truth = ctx.truth
+    if oracle == "pose":
+        T = truth.T_world_sensor
+        rec = {"rotation_error_deg": 0.0, "translation_error_mm": 0.0, "success": True, "ok": True,
+               "constrained": ctx.constrained, "oracle": True, "initial": None}
+        return T, np.zeros((6, 6)), None, rec, {}
+    if localise is None:
+        return None
+    pairings = truth_pairings(desc, truth, ctx.prepared.change_truth) if oracle == "pairing" else None
+    result = localise(desc, ctx.scan, ctx.prepared.apriori, LocaliseParams(), ctx.prepared.predictor,
+                      pairings=pairings)
+    rec = pose_section(result, truth.T_world_sensor, ctx.median_range, ctx.constrained,
+                       ctx.prepared.model_points)
+    t = result.timing_s
+    timing = {"matching": sum(t.get(k, 0.0) for k in ("matching", "pose", "verification")), "icp": t.get("icp")}
+    if not result.ok or result.T_world_sensor is None:
+        return None, None, None, rec, timing
+    return result.T_world_sensor, result.cov_T_world_sensor, result.predicted, rec, timing
 
 
 def write_artifacts(out: Path, scan: Scan, truth: ScanTruth) -> None:

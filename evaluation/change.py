@@ -1,0 +1,117 @@
+"""Change-detection evaluation against the perturbation truth (DESIGN 7, 10.6 and 10.7).
+
+Which features count is decided here from the truth, never by the core: a feature present in the actual
+scene (unchanged, moved, altered, new) is observable when the truth image shows >= 200 of its pixels; a
+missing feature when the a priori model, ray cast from the true pose, shows >= 200 of its pixels
+unoccluded by the actual scene; a moved feature when either its new or its old place qualifies.
+Unobserved features are excluded from scoring.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from typing import Any
+
+import numpy as np
+
+from recognition.change import LABELS, ChangeResult
+from recognition.predict import PredictedImage
+from scenes.perturb import ChangeTruth
+from sensors.range_image import ScanTruth
+
+MIN_PIXELS = 200
+
+
+def _pixels_per_feature(surface_id: np.ndarray, surface_features: tuple[str, ...]) -> dict[str, np.ndarray]:
+    sid = surface_id.reshape(-1)
+    hit = np.flatnonzero(sid >= 0)
+    feats = np.array(surface_features, dtype=object)[sid[hit]]
+    out: dict[str, list[int]] = {}
+    order = np.argsort(feats, kind="stable")
+    names, starts = np.unique(feats[order], return_index=True)
+    for n, g in zip(names, np.split(hit[order], starts[1:]), strict=True):
+        out[str(n)] = g
+    return out
+
+
+def observable_features(truth: ScanTruth, change_truth: ChangeTruth, apriori_at_truth: PredictedImage,
+                        min_pixels: int = MIN_PIXELS) -> dict[str, str]:
+    """Truth label of every observable feature (a priori features and new ones)."""
+    actual_pix = _pixels_per_feature(truth.surface_id, tuple(s.feature_id for s in truth.surfaces))
+    # a priori pixels not occluded by the actual scene: the model surface is at or in front of what is there
+    tol = 3 * np.nan_to_num(truth.sigma, nan=0.0) + 1e-3
+    unoccluded = np.isfinite(apriori_at_truth.range) & ~(truth.true_range < apriori_at_truth.range - tol)
+    sid = np.where(unoccluded, apriori_at_truth.surface_id, -1)
+    old_pix = _pixels_per_feature(sid, apriori_at_truth.surface_features)
+    out = {}
+    for fid, change in change_truth.features.items():
+        n_new = len(actual_pix.get(fid, ()))
+        n_old = len(old_pix.get(fid, ()))
+        if change.label == "missing":
+            ok = n_old >= min_pixels
+        elif change.label == "moved":
+            ok = n_new >= min_pixels or n_old >= min_pixels
+        else:
+            ok = n_new >= min_pixels
+        if ok:
+            out[fid] = change.label
+    for fid in change_truth.new_features:
+        if len(actual_pix.get(fid, ())) >= min_pixels:
+            out[fid] = "new"
+    return out
+
+
+def change_section(result: ChangeResult, truth: ScanTruth, change_truth: ChangeTruth,
+                   apriori_at_truth: PredictedImage, object_of: dict[str, str],
+                   min_pixels: int = MIN_PIXELS) -> dict[str, Any]:
+    """Per-trial change record: (truth, predicted) pairs for observable features and objects, false ``new``
+    patches, and the displacement error of correctly labelled moved features."""
+    observable = observable_features(truth, change_truth, apriori_at_truth, min_pixels)
+    actual_pix = _pixels_per_feature(truth.surface_id, tuple(s.feature_id for s in truth.surfaces))
+    label_map = result.label_map.reshape(-1)
+    new_idx = LABELS.index("new")
+    features = []
+    for fid, t in sorted(observable.items()):
+        if t == "new":
+            pix = actual_pix.get(fid, np.zeros(0, int))
+            share = float(np.mean(label_map[pix] == new_idx)) if len(pix) else 0.0
+            pred = "new" if share >= 0.5 else "none"
+        else:
+            pred = result.features[fid].label if fid in result.features else "none"
+        features.append({"feature": fid, "truth": t, "predicted": pred})
+    # new patches lying mostly on a priori truth surfaces that are not new: false alarms
+    sid_flat = truth.surface_id.reshape(-1)
+    new_truth = set(change_truth.new_features)
+    surface_feature = np.array([s.feature_id for s in truth.surfaces] + [""], dtype=object)
+    n_false_new = 0
+    patch_pixels = _patch_pixels(result)
+    for pid in result.new_patches:
+        owners = surface_feature[sid_flat[patch_pixels[pid]]]
+        owner, count = Counter(owners).most_common(1)[0]
+        if owner not in new_truth:
+            features.append({"feature": owner or None, "truth": "none", "predicted": "new", "patch": int(pid)})
+            n_false_new += 1
+    displacement_errors = []
+    for row in features:
+        if row["truth"] == "moved" and row["predicted"] == "moved":
+            est = result.features[row["feature"]].displacement_m
+            true = change_truth.features[row["feature"]].displacement_m
+            if est is not None:
+                displacement_errors.append(abs(est - true) * 1000.0)
+    objects = []
+    observed_objects = {object_of.get(fid) for fid in observable}
+    for oid, change in change_truth.objects.items():
+        if oid in observed_objects:
+            objects.append({"object": oid, "truth": change.label, "predicted": result.objects.get(oid, "none")})
+    for oid in change_truth.new_objects:
+        if oid in observed_objects:
+            feats = [r for r in features if object_of.get(r["feature"]) == oid]
+            pred = "new" if any(r["predicted"] == "new" for r in feats) else "none"
+            objects.append({"object": oid, "truth": "new", "predicted": pred})
+    return {"features": features, "objects": objects, "displacement_error_mm": displacement_errors,
+            "n_observable": len(observable), "n_false_new": n_false_new}
+
+
+def _patch_pixels(result: ChangeResult) -> dict[int, np.ndarray]:
+    """Pixels of each reported new patch, recovered from the change map's patch ids."""
+    return dict(result.new_patch_pixels)

@@ -1,0 +1,455 @@
+"""Change detection (the paper's section 5): validating a partially correct model after registration.
+
+Given the scene description, the scan, the a priori model and the estimated pose:
+
+1. **Visibility prediction**: the model's range image from the estimated pose says which model features
+   should be seen, and where.
+2. **Per-pixel explanation**: a data point is *explained* when it lies on its predicted model surface
+   within the noise plus a pose allowance that grows with range and incidence; otherwise it may lie on
+   another model surface (a wall revealed behind a missing pipe), or on none (something new or moved).
+3. **Tight then loose matching**: a feature whose predicted pixels are mostly explained is present
+   (then ``altered`` if its fitted radius disagrees with the model); otherwise a scene patch of the same
+   kind at the same place with other shape parameters makes it ``altered``, one within a statistical
+   neighbourhood of the predicted position with the same parameters makes it ``moved`` (with its
+   displacement), and a revealed background makes it ``missing``. A feature that could not be seen
+   (occluded, out of view) is ``unobserved``, never ``missing``.
+4. **New**: scene patches made mostly of unexplained points and claimed by no model feature.
+5. **Objects** (the semantic layer): an object's label comes from counting its features' labels.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from recognition.describe import SceneDescription
+from recognition.predict import ModelPredictor, PredictedImage
+from scenes.features import Cone, Cylinder, Feature, Plane, Sphere, Torus
+from scenes.geometry import transform_points
+from scenes.model import SceneModel
+from sensors.range_image import Scan
+
+LABELS = ("unchanged", "moved", "missing", "altered", "new", "unobserved")
+PIXEL_NONE, PIXEL_EXPLAINED, PIXEL_OTHER_SURFACE, PIXEL_FRONT, PIXEL_BEHIND = 0, 1, 2, 3, 4
+_KIND = {Plane: "PLAN", Cylinder: "CYL", Sphere: "SPH", Cone: "CONE", Torus: "OTH"}
+
+
+@dataclass(frozen=True)
+class ChangeParams:
+    """Parameters of :func:`detect_changes` (thresholds in sigma units unless stated).
+
+    Attributes
+    ----------
+    k_sigma : a data point is on a surface within ``k_sigma`` combined sigmas.
+    pose_sigma_floor_m, pose_sigma_floor_rad : floors of the pose uncertainty used for the allowance.
+    min_pixels : fewest pixels a feature must show (found + revealed) to be judged; fewer: unobserved.
+    present_fraction : share of a feature's judged pixels that must be explained for it to be present.
+    radius_tolerance : relative radius change beyond which (and beyond 3 sigma) a feature is altered.
+    loose_distance_fraction : loose-matching neighbourhood as a fraction of the model's diagonal.
+    loose_angle_deg : largest axis/normal change of a moved feature.
+    new_min_pixels : smallest patch that can be reported new.
+    new_unexplained_fraction : share of a patch's points that must be unexplained for it to be new.
+    """
+
+    k_sigma: float = 4.0
+    pose_sigma_floor_m: float = 5e-4
+    pose_sigma_floor_rad: float = 2e-4
+    min_pixels: int = 40
+    present_fraction: float = 0.5
+    radius_tolerance: float = 0.1
+    loose_distance_fraction: float = 0.03
+    loose_angle_deg: float = 25.0
+    new_min_pixels: int = 60
+    new_unexplained_fraction: float = 0.7
+
+    def __post_init__(self):
+        for name in ("k_sigma", "present_fraction", "radius_tolerance", "loose_distance_fraction",
+                     "loose_angle_deg", "new_unexplained_fraction"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.min_pixels < 1 or self.new_min_pixels < 1:
+            raise ValueError("min_pixels and new_min_pixels must be >= 1")
+
+
+@dataclass(frozen=True)
+class FeatureChange:
+    """The verdict on one a priori feature: label, estimated displacement (metres, moved only), the scene
+    patches that support it, and the pixel evidence (found, revealed, occluded)."""
+
+    label: str
+    displacement_m: float | None = None
+    patches: tuple[int, ...] = ()
+    found: int = 0
+    revealed: int = 0
+    occluded: int = 0
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class ChangeResult:
+    """Labels of every a priori feature and object, the new patches, and a per-pixel change map."""
+
+    features: dict[str, FeatureChange]
+    objects: dict[str, str]
+    new_patches: tuple[int, ...]
+    pixel_class: np.ndarray  # (H, W) int8, PIXEL_* per pixel
+    label_map: np.ndarray  # (H, W) int8 index into LABELS (-1 none): the change map
+    new_patch_pixels: dict[int, np.ndarray] = field(default_factory=dict)  # flat pixels of each new patch
+    timing_s: dict[str, float] = field(default_factory=dict)
+
+
+def _unit_rows(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def pixel_allowance(scan: Scan, sigma: np.ndarray, normals: np.ndarray, cov_T: np.ndarray | None,
+                    params: ChangeParams) -> np.ndarray:
+    """Per-pixel distance allowance (H, W), metres: ``k`` times the noise and pose sigmas combined, the pose
+    part growing with range and with the incidence of the surface."""
+    if cov_T is not None and np.all(np.isfinite(cov_T)):
+        s_rot = max(math.sqrt(max(np.trace(cov_T[:3, :3]), 0.0) / 3), params.pose_sigma_floor_rad)
+        s_t = max(math.sqrt(max(np.trace(cov_T[3:, 3:]), 0.0) / 3), params.pose_sigma_floor_m)
+    else:
+        s_rot, s_t = params.pose_sigma_floor_rad, params.pose_sigma_floor_m
+    rays = scan.sensor.ray_directions()
+    cos_inc = np.abs(np.sum(np.where(np.isfinite(normals), normals, 0.0) * rays, axis=-1))
+    cos_inc = np.where(np.isfinite(normals[..., 0]), np.maximum(cos_inc, 0.2), 1.0)
+    pose = (s_t + s_rot * np.nan_to_num(scan.range)) / cos_inc
+    return params.k_sigma * np.sqrt(np.nan_to_num(sigma) ** 2 + pose**2)
+
+
+def classify_pixels(scan: Scan, predicted: PredictedImage, model: SceneModel, allowance: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Each pixel's relation to the a priori model: explained by its predicted surface, on another model
+    surface, in front of the prediction (unexplained), behind it (unexplained), or no data.
+
+    Returns ``(pixel_class (H, W) int8, world points (H, W, 3))``.
+    """
+    valid = scan.valid
+    pts_w = transform_points(predicted.T_world_sensor, scan.points)
+    d = scan.range - predicted.range
+    cls = np.full(scan.range.shape, PIXEL_NONE, dtype=np.int8)
+    explained = valid & (np.abs(d) <= allowance)
+    cls[explained] = PIXEL_EXPLAINED
+    rest = valid & ~explained
+    if rest.any():
+        p = pts_w[rest]
+        a = allowance[rest]
+        on_other = np.zeros(len(p), dtype=bool)
+        lo, hi = p.min(axis=0) - a.max(), p.max(axis=0) + a.max()
+        for f in model.features:
+            if not _may_reach(f, lo, hi):
+                continue
+            todo = ~on_other
+            if not todo.any():
+                break
+            on_other[todo] = f.surface_distance(p[todo]) <= a[todo]
+        d_rest = d[rest]
+        out = np.where(on_other, PIXEL_OTHER_SURFACE, np.where(np.isfinite(d_rest) & (d_rest > 0), PIXEL_BEHIND,
+                                                                PIXEL_FRONT))
+        cls[rest] = out
+    return cls, pts_w
+
+
+def _may_reach(f: Feature, lo: np.ndarray, hi: np.ndarray) -> bool:
+    """Cheap bounding-sphere test of a feature against the box [lo, hi]."""
+    c, r = _bounding_sphere(f)
+    return bool(np.all(c + r >= lo) and np.all(c - r <= hi))
+
+
+def _bounding_sphere(f: Feature) -> tuple[np.ndarray, float]:
+    if isinstance(f, Plane):
+        return f.centre, float(np.hypot(*f.half_size))
+    if isinstance(f, Cylinder):
+        return f.centre, float(np.hypot(f.radius, f.length / 2))
+    if isinstance(f, Sphere):
+        return f.centre, f.radius
+    if isinstance(f, Cone):
+        mid = (f.start + f.end) / 2
+        return f.apex + f.axis * mid, float(np.hypot((f.end - f.start) / 2, f.radius_at(f.end)))
+    if isinstance(f, Torus):
+        return f.centre, f.major_radius + f.minor_radius
+    raise TypeError(type(f).__name__)
+
+
+def _patch_world(patch, T: np.ndarray) -> np.ndarray:
+    return transform_points(T, patch.points)
+
+
+def _primitive_world(patch, T: np.ndarray):
+    """The patch's dedicated fit in the world frame: (kind, params dict) or None."""
+    prim = patch.classification.primitive
+    if prim is None or not getattr(prim, "ok", False):
+        return None
+    R, t = T[:3, :3], T[:3, 3]
+    label = patch.label
+    if label == "CYL":
+        return {"point": R @ prim.point + t, "axis": R @ prim.axis, "radius": prim.radius,
+                "radius_sigma": prim.radius_sigma, "axis_sigma": prim.axis_sigma_rad}
+    if label == "SPH":
+        return {"centre": R @ prim.centre + t, "radius": prim.radius, "radius_sigma": prim.radius_sigma}
+    if label == "PLAN":
+        return {"normal": R @ prim.normal, "normal_sigma": prim.normal_sigma_rad,
+                "centroid": R @ patch.points.mean(axis=0) + t}
+    if label == "CONE":
+        return {"apex": R @ prim.apex + t, "axis": R @ prim.axis, "half_angle": prim.half_angle,
+                "axis_sigma": prim.axis_sigma_rad}
+    return None
+
+
+def _axis_angle(a: np.ndarray, b: np.ndarray) -> float:
+    return math.degrees(math.acos(min(1.0, abs(float(np.dot(a, b))))))
+
+
+def _line_distance(p: np.ndarray, a: np.ndarray, q: np.ndarray) -> float:
+    w = q - p
+    return float(np.linalg.norm(w - np.dot(w, a) * a))
+
+
+def _same_shape(f: Feature, prim: dict, tol: float) -> bool | None:
+    """Whether the patch's shape parameters agree with the feature's (None when not comparable)."""
+    if isinstance(f, Cylinder | Sphere) and "radius" in prim:
+        sig = 3 * prim.get("radius_sigma", 0.0) if np.isfinite(prim.get("radius_sigma", np.nan)) else 0.0
+        return abs(prim["radius"] - f.radius) <= max(tol * f.radius, sig)
+    if isinstance(f, Cone) and "half_angle" in prim:
+        return abs(prim["half_angle"] - f.half_angle) <= max(tol * f.half_angle, math.radians(2))
+    return None
+
+
+def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel, T_world_sensor: np.ndarray,
+                   cov_T_world_sensor: np.ndarray | None = None, predicted: PredictedImage | None = None,
+                   predictor: ModelPredictor | None = None, params: ChangeParams = ChangeParams()) -> ChangeResult:
+    """Label every a priori feature and object, and find new patches (see the module docstring).
+
+    Parameters
+    ----------
+    description : the scan's scene description (sensor frame).
+    scan : the scan.
+    model : the a priori model (world frame).
+    T_world_sensor : (4, 4) the estimated (verified, refined) sensor pose.
+    cov_T_world_sensor : (6, 6) its covariance (rotation vector, translation), or None.
+    predicted : the model's predicted image at that pose, when already cast (by pose verification).
+    predictor : a compiled :class:`ModelPredictor` of ``model`` (built here when neither is given).
+    """
+    timing: dict[str, float] = {}
+    t0 = time.perf_counter()
+    T = np.asarray(T_world_sensor, dtype=np.float64)
+    if predicted is None:
+        predicted = (predictor or ModelPredictor(model)).predict(scan.sensor, T)
+    timing["predict"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    normals = description.segmentation.normals
+    allowance = pixel_allowance(scan, description.sigma, normals, cov_T_world_sensor, params)
+    pix_cls, _ = classify_pixels(scan, predicted, model, allowance)
+    flat_cls = pix_cls.reshape(-1)
+    feature_pixels = predicted.feature_pixels()
+    by_id = {f.id: f for f in model.features}
+    diag = _model_diagonal(model)
+    loose_d = params.loose_distance_fraction * diag
+
+    # scene patches: world fits, share of unexplained points, overlap with each feature's predicted pixels
+    patch_prims = {p.id: _primitive_world(p, T) for p in description.patches}
+    patch_unexplained = {p.id: float(np.mean(np.isin(flat_cls[p.pixels], (PIXEL_FRONT, PIXEL_BEHIND))))
+                         for p in description.patches}
+    label_flat = description.labels.reshape(-1)
+    claimed: set[int] = set()
+    results: dict[str, FeatureChange] = {}
+    pending: list[str] = []
+    for fid, pix in feature_pixels.items():
+        c = flat_cls[pix]
+        found = int(np.sum(c == PIXEL_EXPLAINED))
+        revealed = int(np.sum((c == PIXEL_OTHER_SURFACE) | (c == PIXEL_BEHIND)))
+        occluded = int(np.sum(c == PIXEL_FRONT))
+        judged = found + revealed
+        f = by_id[fid]
+        overlapping = _overlapping_patches(label_flat[pix[c == PIXEL_EXPLAINED]], description)
+        if judged >= params.min_pixels and found >= params.present_fraction * judged:
+            fitted = [pid for pid in overlapping if patch_prims.get(pid) is not None]
+            allow = float(np.median(allowance.reshape(-1)[pix]))
+            if fitted and not any(_tight(f, patch_prims[pid], allow) for pid in fitted):
+                # seen where predicted, but its fitted pose disagrees with the model: a small move
+                results[fid] = FeatureChange("unobserved", None, (), found, revealed, occluded)
+                pending.append(fid)
+                continue
+            altered = _altered_by_patches(f, overlapping, patch_prims, params)
+            claimed.update(overlapping)
+            if altered:
+                results[fid] = FeatureChange("altered", None, tuple(altered), found, revealed, occluded,
+                                             "fitted shape differs from the model")
+            else:
+                results[fid] = FeatureChange("unchanged", None, tuple(overlapping), found, revealed, occluded)
+        else:
+            results[fid] = FeatureChange("unobserved", None, (), found, revealed, occluded)
+            pending.append(fid)
+
+    # loose matching for the features not found at their predicted place
+    for fid in pending:
+        f = by_id[fid]
+        prev = results[fid]
+        cand = [p for p in description.patches if p.id not in claimed and p.n_pixels >= params.min_pixels
+                and _compatible(p.label, f)]
+        verdict = None
+        best = math.inf
+        for p in cand:
+            prim = patch_prims.get(p.id) or {}
+            dist = float(np.median(f.surface_distance(_patch_world(p, T))))
+            allow = max(float(np.median(allowance.reshape(-1)[p.pixels])), 1e-3)
+            place = _same_place(f, prim, allow)
+            same = _same_shape(f, prim, params.radius_tolerance)
+            if place and same is False:
+                if dist < best:
+                    best, verdict = dist, FeatureChange("altered", None, (p.id,), prev.found, prev.revealed,
+                                                        prev.occluded, "same place, other shape parameters")
+            elif same is not False and dist <= loose_d and _within_angle(f, prim, params.loose_angle_deg):
+                if dist < best:
+                    best, verdict = dist, FeatureChange("moved", dist, (p.id,), prev.found, prev.revealed,
+                                                        prev.occluded, "found in the loose neighbourhood")
+        if verdict is not None:
+            results[fid] = verdict
+            claimed.update(verdict.patches)
+        elif prev.found + prev.revealed >= params.min_pixels:
+            results[fid] = FeatureChange("missing", None, (), prev.found, prev.revealed, prev.occluded,
+                                         "predicted visible, background revealed")
+
+    for f in model.features:  # predicted invisible
+        results.setdefault(f.id, FeatureChange("unobserved", reason="not predicted visible"))
+    _propagate_rigid_moves(model, results)
+
+    new = tuple(p.id for p in description.patches if p.id not in claimed and p.n_pixels >= params.new_min_pixels
+                and patch_unexplained[p.id] >= params.new_unexplained_fraction)
+    objects = {o.id: object_label([results[f.id] for f in o.features]) for o in model.objects}
+    label_map = np.full(scan.range.shape, -1, dtype=np.int8)
+    lm = label_map.reshape(-1)
+    for fid, pix in feature_pixels.items():
+        lab = results[fid].label
+        if lab != "unobserved":
+            lm[pix] = LABELS.index(lab)
+    for pid in new:
+        lm[description.patches[_patch_index(description, pid)].pixels] = LABELS.index("new")
+    for res in results.values():
+        if res.label == "moved":
+            for pid in res.patches:
+                lm[description.patches[_patch_index(description, pid)].pixels] = LABELS.index("moved")
+    timing["change"] = time.perf_counter() - t0
+    new_pixels = {pid: description.patches[_patch_index(description, pid)].pixels for pid in new}
+    return ChangeResult(results, objects, new, pix_cls, label_map, new_pixels, timing)
+
+
+def _compatible(label: str, f: Feature) -> bool:
+    """A scene patch of this label may be the feature (an elbow is seen as OTH)."""
+    return label == _KIND[type(f)]
+
+
+def _patch_index(description: SceneDescription, pid: int) -> int:
+    for i, p in enumerate(description.patches):
+        if p.id == pid:
+            return i
+    raise KeyError(pid)
+
+
+def _model_diagonal(model: SceneModel) -> float:
+    centres = np.array([_bounding_sphere(f)[0] for f in model.features])
+    radii = np.array([_bounding_sphere(f)[1] for f in model.features])
+    lo, hi = (centres - radii[:, None]).min(axis=0), (centres + radii[:, None]).max(axis=0)
+    return float(np.linalg.norm(hi - lo))
+
+
+def _overlapping_patches(labels_on_feature: np.ndarray, description: SceneDescription,
+                         min_share: float = 0.3) -> list[int]:
+    """Patches with at least ``min_share`` of their pixels among the given pixels (a feature's explained ones)."""
+    ids, counts = np.unique(labels_on_feature[labels_on_feature >= 0], return_counts=True)
+    sizes = {p.id: p.n_pixels for p in description.patches}
+    return [int(i) for i, c in zip(ids, counts, strict=True) if c >= min_share * sizes.get(int(i), 1)]
+
+
+def _altered_by_patches(f: Feature, patch_ids: list[int], prims: dict, params: ChangeParams) -> list[int]:
+    """Patches on the feature whose fitted shape parameters disagree with it (radius of every observed
+    cylinder and sphere, cone half-angle: DESIGN 6.4)."""
+    out = []
+    for pid in patch_ids:
+        prim = prims.get(pid)
+        if prim is not None and _same_shape(f, prim, params.radius_tolerance) is False:
+            out.append(pid)
+    return out
+
+
+def _same_place(f: Feature, prim: dict, allowance_m: float) -> bool:
+    """The patch's fitted primitive occupies the feature's place (same axis or centre within the allowance
+    plus the radius difference)."""
+    if isinstance(f, Cylinder) and "axis" in prim:
+        return _axis_angle(f.axis, prim["axis"]) <= 5.0 and \
+            _line_distance(f.centre, f.axis, prim["point"]) <= allowance_m + 0.1 * f.radius
+    if isinstance(f, Sphere) and "centre" in prim:
+        return float(np.linalg.norm(prim["centre"] - f.centre)) <= allowance_m + 0.1 * f.radius
+    if isinstance(f, Cone) and "axis" in prim:
+        return _axis_angle(f.axis, prim["axis"]) <= 5.0 and \
+            _line_distance(f.apex, f.axis, prim["apex"]) <= allowance_m + 0.1 * float(f.radius_at(f.end))
+    return False
+
+
+def _tight(f: Feature, prim: dict, allowance_m: float) -> bool:
+    """The fitted primitive agrees with the model feature's pose (tight matching): normals/axes within three
+    of their sigmas plus a degree, positions within the allowance."""
+
+    def angle_ok(a: np.ndarray, b: np.ndarray, sigma: float) -> bool:
+        sig = sigma if np.isfinite(sigma) else 0.0
+        return _axis_angle(a, b) <= max(math.degrees(3 * sig) + 1.0, 1.5)
+
+    if isinstance(f, Plane) and "normal" in prim:
+        offset = abs(float(np.dot(f.normal, prim["centroid"] - f.centre)))
+        return angle_ok(f.normal, prim["normal"], prim["normal_sigma"]) and offset <= allowance_m
+    if isinstance(f, Cylinder) and "axis" in prim:
+        return angle_ok(f.axis, prim["axis"], prim["axis_sigma"]) and \
+            _line_distance(f.centre, f.axis, prim["point"]) <= allowance_m + 0.5 * abs(prim["radius"] - f.radius) \
+            + 0.05 * f.radius
+    if isinstance(f, Sphere) and "centre" in prim:
+        return float(np.linalg.norm(prim["centre"] - f.centre)) <= allowance_m + 0.05 * f.radius + \
+            abs(prim["radius"] - f.radius)
+    if isinstance(f, Cone) and "axis" in prim:
+        return angle_ok(f.axis, prim["axis"], prim["axis_sigma"])
+    return True
+
+
+def _within_angle(f: Feature, prim: dict, max_deg: float) -> bool:
+    if isinstance(f, Plane) and "normal" in prim:
+        return math.degrees(math.acos(np.clip(float(np.dot(f.normal, prim["normal"])), -1, 1))) <= max_deg
+    if isinstance(f, Cylinder | Cone) and "axis" in prim:
+        return _axis_angle(f.axis, prim["axis"]) <= max_deg
+    return True
+
+
+def _propagate_rigid_moves(model: SceneModel, results: dict[str, FeatureChange], revealed_share: float = 0.1) -> None:
+    """Objects move as a whole: in an object with a moved feature, a feature left 'unchanged' whose predicted
+    place is partly revealed (background seen where it should be) moved with it."""
+    for obj in model.objects:
+        moved = [results[f.id] for f in obj.features if results[f.id].label == "moved"]
+        if not moved or obj.kind == "pipe_run" and len(moved) < 2:
+            continue  # one moved section of a pipe run is a section move, not an object move
+        disp = float(np.median([m.displacement_m for m in moved if m.displacement_m is not None] or [np.nan]))
+        for f in obj.features:
+            r = results[f.id]
+            if r.label == "unchanged" and r.revealed >= revealed_share * max(r.found + r.revealed, 1):
+                results[f.id] = FeatureChange("moved", disp, r.patches, r.found, r.revealed, r.occluded,
+                                              "moves with its object")
+
+
+def object_label(changes: list[FeatureChange]) -> str:
+    """An object's label from its features' (counting, as the paper suggests): ``missing`` when every
+    observed feature is missing, ``moved`` when every observed feature moved (or moved and missing from view
+    at the old place), ``altered`` when some are altered or only part of it moved, else ``unchanged``;
+    ``unobserved`` when none was observed."""
+    labels = [c.label for c in changes if c.label != "unobserved"]
+    if not labels:
+        return "unobserved"
+    if all(lab == "missing" for lab in labels):
+        return "missing"
+    if "moved" in labels and all(lab in ("moved", "missing") for lab in labels):
+        return "moved"
+    if any(lab in ("altered", "moved") for lab in labels):
+        return "altered"
+    if "missing" in labels and "unchanged" in labels:
+        return "altered"
+    return "unchanged"
