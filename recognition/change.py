@@ -211,7 +211,7 @@ def _line_distance(p: np.ndarray, a: np.ndarray, q: np.ndarray) -> float:
 
 def _same_shape(f: Feature, prim: dict, tol: float) -> bool | None:
     """Whether the patch's shape parameters agree with the feature's (None when not comparable)."""
-    if isinstance(f, Cylinder | Sphere) and "radius" in prim:
+    if (isinstance(f, Cylinder) and "point" in prim) or (isinstance(f, Sphere) and "centre" in prim):
         sig = 3 * prim.get("radius_sigma", 0.0) if np.isfinite(prim.get("radius_sigma", np.nan)) else 0.0
         return abs(prim["radius"] - f.radius) <= max(tol * f.radius, sig)
     if isinstance(f, Cone) and "half_angle" in prim:
@@ -267,9 +267,10 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
         f = by_id[fid]
         overlapping = _overlapping_patches(label_flat[pix[c == PIXEL_EXPLAINED]], description)
         if judged >= params.min_pixels and found >= params.present_fraction * judged:
-            fitted = [pid for pid in overlapping if patch_prims.get(pid) is not None]
             allow = float(np.median(allowance.reshape(-1)[pix]))
-            if fitted and not any(_tight(f, patch_prims[pid], allow) for pid in fitted):
+            tight = [_tight(f, patch_prims[pid], allow) for pid in overlapping if patch_prims.get(pid) is not None]
+            tight = [t for t in tight if t is not None]
+            if tight and not any(tight):
                 # seen where predicted, but its fitted pose disagrees with the model: a small move
                 results[fid] = FeatureChange("unobserved", None, (), found, revealed, occluded)
                 pending.append(fid)
@@ -379,38 +380,39 @@ def _altered_by_patches(f: Feature, patch_ids: list[int], prims: dict, params: C
 def _same_place(f: Feature, prim: dict, allowance_m: float) -> bool:
     """The patch's fitted primitive occupies the feature's place (same axis or centre within the allowance
     plus the radius difference)."""
-    if isinstance(f, Cylinder) and "axis" in prim:
+    if isinstance(f, Cylinder) and "point" in prim:
         return _axis_angle(f.axis, prim["axis"]) <= 5.0 and \
             _line_distance(f.centre, f.axis, prim["point"]) <= allowance_m + 0.1 * f.radius
     if isinstance(f, Sphere) and "centre" in prim:
         return float(np.linalg.norm(prim["centre"] - f.centre)) <= allowance_m + 0.1 * f.radius
-    if isinstance(f, Cone) and "axis" in prim:
+    if isinstance(f, Cone) and "apex" in prim:
         return _axis_angle(f.axis, prim["axis"]) <= 5.0 and \
             _line_distance(f.apex, f.axis, prim["apex"]) <= allowance_m + 0.1 * float(f.radius_at(f.end))
     return False
 
 
-def _tight(f: Feature, prim: dict, allowance_m: float) -> bool:
+def _tight(f: Feature, prim: dict, allowance_m: float) -> bool | None:
     """The fitted primitive agrees with the model feature's pose (tight matching): normals/axes within three
-    of their sigmas plus a degree, positions within the allowance."""
+    of their sigmas plus a degree, positions within the allowance. None when the two are not comparable
+    (a patch of another kind)."""
 
     def angle_ok(a: np.ndarray, b: np.ndarray, sigma: float) -> bool:
         sig = sigma if np.isfinite(sigma) else 0.0
         return _axis_angle(a, b) <= max(math.degrees(3 * sig) + 1.0, 1.5)
 
-    if isinstance(f, Plane) and "normal" in prim:
+    if isinstance(f, Plane) and "centroid" in prim:
         offset = abs(float(np.dot(f.normal, prim["centroid"] - f.centre)))
         return angle_ok(f.normal, prim["normal"], prim["normal_sigma"]) and offset <= allowance_m
-    if isinstance(f, Cylinder) and "axis" in prim:
+    if isinstance(f, Cylinder) and "point" in prim:
         return angle_ok(f.axis, prim["axis"], prim["axis_sigma"]) and \
             _line_distance(f.centre, f.axis, prim["point"]) <= allowance_m + 0.5 * abs(prim["radius"] - f.radius) \
             + 0.05 * f.radius
     if isinstance(f, Sphere) and "centre" in prim:
         return float(np.linalg.norm(prim["centre"] - f.centre)) <= allowance_m + 0.05 * f.radius + \
             abs(prim["radius"] - f.radius)
-    if isinstance(f, Cone) and "axis" in prim:
+    if isinstance(f, Cone) and "apex" in prim:
         return angle_ok(f.axis, prim["axis"], prim["axis_sigma"])
-    return True
+    return None
 
 
 def _within_angle(f: Feature, prim: dict, max_deg: float) -> bool:

@@ -1,0 +1,138 @@
+"""Change detection: a hand-made perturbation seen from a known pose, with truth segmentation and
+classification (oracles) so that the change stage alone is tested; object labels; evaluation."""
+
+import numpy as np
+import pytest
+
+from evaluation.aggregate import aggregate_change
+from evaluation.change import change_section, observable_features
+from evaluation.oracles import truth_classification, truth_segmentation
+from recognition.change import ChangeParams, FeatureChange, detect_changes, object_label
+from recognition.describe import core_sigma, describe
+from recognition.predict import ModelPredictor
+from scenes import builders
+from scenes.geometry import look_at, make_transform
+from scenes.model import SceneModel
+from scenes.perturb import Change, ChangeTruth
+from sensors.config import sensor_from_yaml
+from sensors.simulate import Simulator
+
+SENSOR = """
+schema: sensor/1
+name: test_cam
+pinhole: {width: 320, height: 240, fov_deg: 60.0, min_range: 0.3, max_range: 12.0}
+noise:
+  range: {model: ray, s0_m: 3.0e-4, s2_per_m: 5.0e-5, max_incidence_deg: 80}
+"""
+
+
+def _scenes():
+    floor = builders.floor("floor", 8.0, 6.0)
+    wall = builders.wall("wall", (0.0, 2.0, 0.0), 0.0, 8.0, 3.0, 0.2)
+    pipe_a = builders.pipe_run("pipe_a", [[-2.5, 1.0, 1.2], [-0.5, 1.0, 1.2]], 0.12, 0.3)
+    pipe_b = builders.pipe_run("pipe_b", [[0.5, 1.0, 0.8], [2.5, 1.0, 0.8]], 0.15, 0.35)
+    tank = builders.sphere_tank("tank", (1.5, 0.0, 0.0), 0.45, 0.2)
+    cab = builders.cabinet("cab", (-1.5, 0.2, 0.0), 0.0, (0.8, 0.5, 0.9))
+    apriori = SceneModel("t", (floor, wall, pipe_a, pipe_b, tank, cab))
+    T_move = make_transform(np.eye(3), np.array([0.0, -0.25, 0.15]))
+    moved_a = pipe_a.transformed(T_move)
+    altered_b = builders.pipe_run("pipe_b", [[0.5, 1.0, 0.8], [2.5, 1.0, 0.8]], 0.22, 0.35)
+    new = builders.cabinet("new0", (0.0, -0.6, 0.0), 0.3, (0.5, 0.4, 0.6))
+    actual = SceneModel("t", (floor, wall, moved_a, altered_b, cab, new))
+    feats = {f.id: Change("unchanged", object_id=o.id) for o in apriori.objects for f in o.features}
+    feats["pipe_a.s0"] = Change("moved", T_move, 0.29, "pipe_a")
+    feats["pipe_b.s0"] = Change("altered", object_id="pipe_b")
+    for f in tank.features:
+        feats[f.id] = Change("missing", object_id="tank")
+    objs = {o.id: Change("unchanged") for o in apriori.objects}
+    objs |= {"pipe_a": Change("moved", T_move, 0.29), "pipe_b": Change("altered"), "tank": Change("missing")}
+    truth = ChangeTruth(feats, objs, tuple(f.id for f in new.features), ("new0",))
+    return apriori, actual, truth
+
+
+@pytest.fixture(scope="module")
+def seen():
+    apriori, actual, change_truth = _scenes()
+    config = sensor_from_yaml(SENSOR)
+    T = look_at([0.0, -5.0, 2.2], [0.0, 0.8, 0.7])
+    scan, truth = Simulator.from_scene(actual).simulate(config, T, np.random.default_rng(0))
+    seg = truth_segmentation(scan, truth, core_sigma(scan))
+    desc = truth_classification(describe(scan, segmentation=seg), truth)
+    predictor = ModelPredictor(apriori)
+    result = detect_changes(desc, scan, apriori, truth.T_world_sensor, predictor=predictor)
+    return apriori, actual, change_truth, scan, truth, desc, predictor, result
+
+
+def test_each_kind_of_change_is_found(seen):
+    apriori, _, change_truth, scan, truth, desc, predictor, result = seen
+    labels = {fid: r.label for fid, r in result.features.items()}
+    assert labels["pipe_a.s0"] == "moved"
+    assert result.features["pipe_a.s0"].displacement_m == pytest.approx(0.29, abs=0.12)
+    assert labels["pipe_b.s0"] == "altered"
+    assert labels["tank.ball"] == "missing"
+    assert labels["wall.yn"] == "unchanged" and labels["floor.top"] == "unchanged"
+    assert labels["cab.yn"] == "unchanged"
+    assert result.objects["tank"] == "missing" and result.objects["pipe_a"] == "moved"
+    assert result.objects["pipe_b"] == "altered" and result.objects["cab"] == "unchanged"
+    # the new cabinet's visible faces are reported as new patches
+    sid = truth.surface_id.reshape(-1)
+    new_surfaces = {i for i, s in enumerate(truth.surfaces) if s.feature_id.startswith("new0")}
+    on_new = [pid for pid in result.new_patches
+              if np.isin(sid[result.new_patch_pixels[pid]], list(new_surfaces)).mean() > 0.5]
+    assert on_new, "no new patch on the new cabinet"
+    assert len(on_new) == len(result.new_patches), "a new patch that is not on the new cabinet"
+
+
+def test_invisible_features_are_unobserved_never_missing(seen):
+    _, _, _, _, _, _, _, result = seen
+    assert result.features["wall.yp"].label == "unobserved"  # the wall's back face cannot be seen
+    assert all(r.label != "missing" for fid, r in result.features.items() if not fid.startswith("tank"))
+
+
+def test_evaluation_scores_the_detection(seen):
+    apriori, actual, change_truth, scan, truth, desc, predictor, result = seen
+    at_truth = predictor.predict(scan.sensor, truth.T_world_sensor)
+    observable = observable_features(truth, change_truth, at_truth)
+    assert observable["tank.ball"] == "missing" and observable["pipe_a.s0"] == "moved"
+    assert "wall.yp" not in observable
+    object_of = {f.id: o.id for m in (apriori, actual) for o in m.objects for f in o.features}
+    sec = change_section(result, truth, change_truth, at_truth, object_of)
+    agg = aggregate_change([sec])
+    assert agg["macro_f1"] == pytest.approx(1.0)
+    assert agg["objects"]["macro_f1"] == pytest.approx(1.0)
+
+
+def test_truth_fed_as_the_estimate_scores_perfectly(seen):
+    apriori, actual, change_truth, scan, truth, desc, predictor, result = seen
+    at_truth = predictor.predict(scan.sensor, truth.T_world_sensor)
+    perfect = {fid: FeatureChange(c.label, c.displacement_m if c.label == "moved" else None)
+               for fid, c in change_truth.features.items()}
+    sid = truth.surface_id.reshape(-1)
+    new_pix = np.flatnonzero(np.isin(sid, [i for i, s in enumerate(truth.surfaces) if s.feature_id.startswith("new0")]))
+    label_map = np.full(scan.range.shape, -1, np.int8)
+    label_map.reshape(-1)[new_pix] = 4
+    objects = {oid: c.label for oid, c in change_truth.objects.items()}
+    from recognition.change import ChangeResult
+
+    ideal = ChangeResult(perfect, objects, (0,), np.zeros(scan.range.shape, np.int8), label_map, {0: new_pix})
+    object_of = {f.id: o.id for m in (apriori, actual) for o in m.objects for f in o.features}
+    sec = change_section(ideal, truth, change_truth, at_truth, object_of)
+    assert all(r["truth"] == r["predicted"] for r in sec["features"])
+    assert sec["displacement_error_mm"] == [0.0]
+
+
+def test_object_labels_by_counting():
+    fc = FeatureChange
+    assert object_label([fc("missing"), fc("missing"), fc("unobserved")]) == "missing"
+    assert object_label([fc("moved"), fc("moved")]) == "moved"
+    assert object_label([fc("moved"), fc("unchanged")]) == "altered"  # one section moved
+    assert object_label([fc("unchanged"), fc("altered")]) == "altered"
+    assert object_label([fc("unchanged"), fc("unobserved")]) == "unchanged"
+    assert object_label([fc("unobserved")]) == "unobserved"
+
+
+def test_change_params_validation():
+    with pytest.raises(ValueError, match="k_sigma must be > 0"):
+        ChangeParams(k_sigma=0)
+    with pytest.raises(ValueError, match="min_pixels"):
+        ChangeParams(min_pixels=0)
