@@ -51,11 +51,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _report(out: Path) -> None:
-    try:
-        from reports.render import render_report
-    except ModuleNotFoundError:
-        return  # reports not built yet
-    render_report(out)
+    """report.html and report.md, with the gallery of the worst trials re-run (DESIGN 10.14)."""
+    import sys
+
+    from harness.commands.report import write_report
+
+    write_report(out, log=lambda msg: print(msg, file=sys.stderr, flush=True))
 
 
 def headline(summary: dict, out: Path) -> str:

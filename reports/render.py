@@ -1,0 +1,829 @@
+"""The evaluation report of a run directory: ``report.html`` (self-contained, figures embedded) and ``report.md``.
+
+:func:`render_report` reads ``summary.json``, ``run.json`` and ``trials/*.json`` (never logs), builds a
+:class:`reports.document.Document` and writes it twice. A stage whose summary section is null is shown as
+"not built yet", never left out and never filled in. The gallery pictures and the regression verdicts come
+from the caller (``harness report`` re-runs the gallery trials and runs ``harness compare``), so this package
+never runs the simulator nor re-implements the regression rules.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import re
+import tempfile
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from reports import figures
+from reports.colours import CHANGE_COLOURS, CHANGE_LABELS, CLASS_COLOURS, CLASSES
+from reports.document import Cell, Code, Document, GalleryTrial, Grid, Image, Note, Para, Section, Table
+from reports.html import render_html
+from reports.markdown import render_markdown
+from reports.regression import HEADLINE, Metric, Missing, headline_deltas, lookup
+
+HOOVER_RATES = ("correct_detection_rate", "over_rate", "under_rate", "missed_rate", "noise_rate")
+HOOVER_HEAD = ("correct", "over", "under", "missed", "noise")
+STAGES = ("sensor", "segmentation", "classification", "matching", "icp", "change", "total")
+MIN_PATCH_PIXELS = 200
+SWEEP_GROUP = re.compile(r"\[([A-Za-z_][A-Za-z0-9_]*)=([^\]]+)\]")
+METHOD_NOTES = {"core": "the recognition core (its model-selection classifier)",
+                "paper": "the core with the paper's literal classifier (plausibilities, 0.2 margin)"}
+NOT_BUILT = "not built yet"
+
+
+# -- loading ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RunData:
+    """What a report reads from a run directory."""
+
+    root: Path
+    summary: dict[str, Any]
+    run: dict[str, Any]
+    records: list[dict[str, Any]]
+
+    @property
+    def methods(self) -> list[str]:
+        """``core``, then ``paper``, then the other peers by name."""
+        peers = sorted(self.summary.get("baselines") or {}, key=lambda m: (m != "paper", m))
+        return ["core", *peers]
+
+    def sections(self, method: str, scope: Mapping[str, Any] | None = None) -> Mapping[str, Any] | None:
+        """A method's sections in the whole summary or in one group (``scope``)."""
+        s = self.summary if scope is None else scope
+        return s if method == "core" else (s.get("baselines") or {}).get(method)
+
+    def ok_records(self) -> list[dict[str, Any]]:
+        return [r for r in self.records if r.get("status") == "ok"]
+
+
+def load_run(run_dir: str | Path) -> RunData:
+    """Read a run directory; ``summary.json`` is required, ``run.json`` and the trial records are optional."""
+    root = Path(run_dir)
+    summary_path = root / "summary.json"
+    if not summary_path.is_file():
+        raise FileNotFoundError(f"{root}: no summary.json (is this a run directory?)")
+    summary = _read_json(summary_path)
+    if not isinstance(summary, dict) or summary.get("schema") != "harness.summary/1":
+        raise ValueError(f"{summary_path}: not a harness summary (schema harness.summary/1)")
+    run = _read_json(root / "run.json") if (root / "run.json").is_file() else {}
+    records = []
+    trials_dir = root / "trials"
+    if trials_dir.is_dir():
+        for p in sorted(trials_dir.glob("*.json")):
+            try:
+                records.append(_read_json(p))
+            except (OSError, ValueError):
+                continue  # a partial or foreign file: the summary is the reference, records only add detail
+    order = {t: i for i, t in enumerate(run.get("trials", []))}
+    records.sort(key=lambda r: (order.get(r.get("trial_id"), len(order)), str(r.get("trial_id"))))
+    return RunData(root, summary, run, records)
+
+
+def _read_json(path: Path) -> Any:
+    with open(path, encoding="utf-8") as f:
+        return json.load(f)
+
+
+def load_baseline_summary(baseline: str | Path) -> dict[str, Any]:
+    """A baseline run directory's summary (or a summary.json file)."""
+    p = Path(baseline)
+    p = p / "summary.json" if p.is_dir() else p
+    if not p.is_file():
+        raise FileNotFoundError(f"baseline {baseline}: no summary.json")
+    data = _read_json(p)
+    if not isinstance(data, dict) or data.get("schema") != "harness.summary/1":
+        raise ValueError(f"{p}: not a harness summary (schema harness.summary/1)")
+    return data
+
+
+# -- formatting ---------------------------------------------------------------------------------------------
+def fmt(x: Any, digits: int = 3, unit: str = "") -> str:
+    """A number for a table (``n/a`` for None, NaN or non-numbers)."""
+    if isinstance(x, bool) or not isinstance(x, int | float) or x != x:
+        return "n/a"
+    s = f"{x:.{digits}f}" if isinstance(x, float) else str(x)
+    return f"{s} {unit}".strip()
+
+
+def value_cell(v: float | Missing, digits: int = 3, unit: str = "") -> Cell:
+    if isinstance(v, Missing):
+        return Cell(v.why, "missing" if v.why == NOT_BUILT else "na")
+    return Cell(fmt(v, digits, unit), "num")
+
+
+def _get(d: Mapping[str, Any] | None, *path: str) -> Any:
+    node: Any = d
+    for k in path:
+        if not isinstance(node, Mapping):
+            return None
+        node = node.get(k)
+    return node
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or "x"
+
+
+def _not_built(stage: str, methods: Sequence[str]) -> Note:
+    who = "any method" if len(methods) > 1 else methods[0]
+    return Note(f"{stage.capitalize()} is not built yet: summary.json has {stage}: null for {who}, so there are "
+                "no numbers to show.", "missing")
+
+
+# -- trial ranking (used by ``harness report`` to choose the gallery) -----------------------------------------
+def trial_score(record: Mapping[str, Any], method: str = "core") -> tuple[float, str]:
+    """A trial's score in [0, 1] (lower is worse) and a sentence saying why.
+
+    The mean of the figures the trial has: Hoover correct-detection rate, classification accuracy over
+    patches of 200 pixels or more, pose success (0 or 1) and the fraction of features whose change label is
+    right. A failed trial scores -1 (it cannot be drawn; it is listed under failures).
+    """
+    if record.get("status") != "ok":
+        return -1.0, f"failed: {record.get('reason', '')}"
+    m = (record.get("methods") or {}).get(method) or {}
+    parts: list[tuple[str, float]] = []
+    seg = m.get("segmentation")
+    if seg and seg.get("correct_detection_rate") is not None:
+        parts.append(("correct detection", float(seg["correct_detection_rate"])))
+    cls = m.get("classification")
+    if cls:
+        patches = [p for p in cls.get("patches", []) if p.get("n_pixels", 0) >= MIN_PATCH_PIXELS]
+        if patches:
+            parts.append((f"accuracy ({len(patches)} patches)",
+                          sum(p["truth"] == p["label"] for p in patches) / len(patches)))
+    pose = m.get("pose")
+    if pose and pose.get("success") is not None:
+        parts.append(("pose success", float(bool(pose["success"]))))
+    chg = m.get("change")
+    if chg and chg.get("features"):
+        f = chg["features"]
+        parts.append(("change labels right", sum(x["truth"] == x["predicted"] for x in f) / len(f)))
+    if not parts:
+        return 1.0, "no scored stage"
+    score = sum(v for _, v in parts) / len(parts)
+    return score, f"score {score:.2f}: " + ", ".join(f"{k} {v:.2f}" for k, v in parts)
+
+
+def worst_trials(records: Sequence[Mapping[str, Any]], n: int, method: str = "core"
+                 ) -> list[tuple[Mapping[str, Any], float, str]]:
+    """The ``n`` worst successful trials, worst first (ties broken by trial id): ``(record, score, why)``."""
+    scored = [(r, *trial_score(r, method)) for r in records if r.get("status") == "ok"]
+    scored.sort(key=lambda t: (t[1], str(t[0].get("trial_id"))))
+    return scored[:max(n, 0)]
+
+
+# -- sections -----------------------------------------------------------------------------------------------
+def overview_section(run: RunData) -> Section:
+    s, prov = run.summary, run.summary.get("provenance") or run.run.get("provenance") or {}
+    rinfo = s.get("run") or {}
+    rows = [
+        ("suite", str(s.get("suite", "?"))),
+        ("suite file", str(run.run.get("source", "n/a"))),
+        ("configuration hash", str(s.get("config_hash", "n/a"))),
+        ("trials", f"{s.get('n_trials', 0)} run of {s.get('n_planned', s.get('n_trials', 0))} planned, "
+                   f"{s.get('n_failed', 0)} failed" + ("" if s.get("complete", True) else " (incomplete run)")),
+        ("methods", ", ".join(f"{m} ({METHOD_NOTES.get(m, 'peer method')})" for m in run.methods)),
+        ("package version", str(s.get("version", prov.get("version", "n/a")))),
+        ("git commit", str(prov.get("git_commit") or "n/a")),
+        ("python", str(prov.get("python", "n/a"))),
+        ("libraries", ", ".join(f"{k} {v}" for k, v in (prov.get("libraries") or {}).items()) or "n/a"),
+        ("machine", ", ".join(f"{k} {v}" for k, v in (prov.get("machine") or {}).items()) or "n/a"),
+        ("wall time", fmt(rinfo.get("wall_s"), 1, "s") + (f" on {rinfo['workers']} worker(s)"
+                                                           if rinfo.get("workers") else "")),
+        ("throughput", fmt(rinfo.get("trials_per_minute"), 2, "trials/min")),
+    ]
+    blocks: list[Any] = [Table(("item", "value"), tuple((Cell(k), Cell(v)) for k, v in rows), id="provenance")]
+    command = prov.get("command")
+    blocks.append(Para("Reproduce the run (same suite, seeds and code give the same summary apart from times and "
+                       "provenance), then this report:"))
+    suite_ref = run.run.get("source") or s.get("suite", "SUITE")
+    recorded = bool(command and command.startswith("harness "))
+    bench = command if recorded else f"harness bench --suite {suite_ref} --out {run.root}"
+    blocks.append(Code(f"{bench}\nharness report {run.root}"))
+    if command and not recorded:
+        blocks.append(Para(f"(The run was started from Python; its recorded command line: {command})"))
+    cfg = run.run.get("suite_config")
+    if cfg:
+        import yaml
+
+        blocks.append(Para("Suite configuration as run:"))
+        blocks.append(Code(yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None, width=110).rstrip()))
+    if not s.get("complete", True):
+        blocks.insert(0, Note(f"Incomplete run: {s.get('n_trials')} of {s.get('n_planned')} trials finished; "
+                              "figures cover the finished trials only.", "warn"))
+    return Section("run", "Run and reproduction", blocks)
+
+
+def headline_section(run: RunData) -> Section:
+    s = run.summary
+    methods = run.methods
+    rows = []
+    for m in HEADLINE:
+        cells = [Cell(m.label), Cell(m.direction)]
+        cells += [value_cell(lookup(run.sections(meth), m.path), m.digits, m.unit) for meth in methods]
+        rows.append(tuple(cells))
+    rows.append((Cell("trials (failed)"), Cell(""),
+                 *[Cell(f"{s.get('n_trials', 0)} ({s.get('n_failed', 0)})", "num") for _ in methods]))
+    blocks: list[Any] = [
+        Table(("metric", "better", *methods), tuple(rows), id="headline",
+              caption="All trials pooled. " + "; ".join(f"{m}: {METHOD_NOTES.get(m, 'peer method')}"
+                                                        for m in methods) + "."),
+    ]
+    groups = s.get("groups") or {}
+    if groups:
+        gm = [m for m in HEADLINE if m.label in _GROUP_METRICS]
+        grows = [(Cell(name), Cell(str(g.get("n_trials", "")), "num"),
+                  Cell(str(g.get("n_failed", 0)), "bad" if g.get("n_failed") else "num"),
+                  *[value_cell(lookup(g, m.path), m.digits, m.unit) for m in gm]) for name, g in groups.items()]
+        blocks.append(Table(("group (scene/sensor)", "trials", "failed", *[_short(m) for m in gm]), tuple(grows),
+                            caption="Per group, core method (DESIGN 10.5: the per-preset figures)."))
+    return Section("headline", "Headline", blocks)
+
+
+_GROUP_METRICS = ("segmentation: correct detection rate", "classification: accuracy", "classification: Brier score",
+                  "pose: success rate", "change: macro-F1", "time per trial, median")
+
+
+def _short(m: Metric) -> str:
+    return {"segmentation: correct detection rate": "correct detection", "classification: accuracy": "accuracy",
+            "classification: Brier score": "Brier", "pose: success rate": "pose success",
+            "change: macro-F1": "change macro-F1", "time per trial, median": "time/trial (s)"}.get(m.label, m.label)
+
+
+def segmentation_section(run: RunData) -> Section:
+    methods = run.methods
+    secs = {m: _get(run.sections(m), "segmentation") for m in methods}
+    if all(v is None for v in secs.values()):
+        return Section("segmentation", "Segmentation", [_not_built("segmentation", methods)])
+    core = next(v for v in secs.values() if v is not None)
+    blocks: list[Any] = [Para(
+        f"Hoover et al. (1996) region metrics at overlap tolerance T = {core.get('tolerance')}, over truth regions "
+        f"of {core.get('min_truth_pixels', 0)} pixels or more ({core.get('n_truth_regions', 'n/a')} regions in "
+        f"{core.get('n_images', 'n/a')} images). Correct, over, under and missed are per truth region; noise is "
+        "per machine region; rates are averaged over images.")]
+    rows = []
+    for m, sec in secs.items():
+        if sec is None:
+            rows.append((Cell(m), *[Cell(NOT_BUILT, "missing") for _ in HOOVER_RATES]))
+        else:
+            rows.append((Cell(m), *[Cell(fmt(sec.get(k)), "num") for k in HOOVER_RATES]))
+    blocks.append(Table(("method", *HOOVER_HEAD), tuple(rows), caption="Hoover rates (fraction of regions)"))
+    sweeps = {}
+    for m, sec in secs.items():
+        if sec and sec.get("sweep") and not any(sec["sweep"] == other for other in sweeps.values()):
+            sweeps[m] = sec["sweep"]
+    shared = [m for m, sec in secs.items() if sec and m not in sweeps and sec.get("sweep")]
+    if sweeps:
+        blocks.append(Image(figures.hoover_sweep_figure(sweeps, core.get("tolerance")),
+                            "Hoover rates against the overlap tolerance T (grey line: the headline T)"
+                            + (f"; {', '.join(shared)} share(s) the core's segmentation" if shared else "") + ".",
+                            alt="Hoover metrics vs tolerance"))
+    groups = run.summary.get("groups") or {}
+    grows = [(Cell(g), *[Cell(fmt(_get(sec, "segmentation", k)), "num") if _get(sec, "segmentation") else
+                         Cell(NOT_BUILT, "missing") for k in HOOVER_RATES]) for g, sec in groups.items()]
+    if len(grows) > 1:
+        blocks.append(Table(("group", *HOOVER_HEAD), tuple(grows), caption="Per group, core method"))
+    return Section("segmentation", "Segmentation", blocks)
+
+
+def classification_section(run: RunData, table_trial: str | None) -> Section:
+    methods = run.methods
+    secs = {m: _get(run.sections(m), "classification") for m in methods}
+    if all(v is None for v in secs.values()):
+        return Section("classification", "Classification", [_not_built("classification", methods)])
+    present = {m: v for m, v in secs.items() if v is not None}
+    first = next(iter(present.values()))
+    blocks: list[Any] = [Para(
+        f"Each patch of {first.get('min_patch_pixels', MIN_PATCH_PIXELS)} pixels or more takes the truth class of "
+        f"the surface it mostly covers ({first.get('n_patches', 0)} such patches of "
+        f"{first.get('n_patches_all', 'n/a')}). Brier score: multi-class over PLAN, CYL, SPH, CONE, OTH; ECE: "
+        "expected calibration error of the winning label's probability.")]
+    rows = [(Cell(m), *([Cell(fmt(sec.get("accuracy")), "num"), Cell(fmt(sec.get("brier")), "num"),
+                         Cell(fmt(sec.get("ece")), "num"), Cell(str(sec.get("n_patches", "")), "num")]
+                        if sec else [Cell(NOT_BUILT, "missing")] * 4)) for m, sec in secs.items()]
+    blocks.append(Table(("method", "accuracy", "Brier", "ECE", "patches"), tuple(rows)))
+    head = ["class", "support"]
+    for m in present:
+        head += [f"precision ({m})", f"recall ({m})"]
+    crow = []
+    for c in CLASSES:
+        support = _get(first, "per_class", c, "support")
+        cells = [Cell(c, colour=CLASS_COLOURS[c]), Cell(fmt(support), "num")]
+        for sec in present.values():
+            cells += [Cell(fmt(_get(sec, "per_class", c, "precision")), "num"),
+                      Cell(fmt(_get(sec, "per_class", c, "recall")), "num")]
+        crow.append(tuple(cells))
+    blocks.append(Table(tuple(head), tuple(crow), caption="Per class (support: truth patches of that class)"))
+    per_class = {m: sec["per_class"] for m, sec in present.items() if sec.get("per_class")}
+    if per_class:
+        blocks.append(Image(figures.per_class_figure(per_class), "Recall (bars, class colours) and precision "
+                            "(diamonds) per truth class.", alt="per-class recall and precision"))
+    conf = {m: sec["confusion"] for m, sec in present.items() if sec.get("confusion")}
+    if conf:
+        blocks.append(Image(figures.confusion_figure(conf), "Confusion matrices: rows are truth classes, columns "
+                            "labels; counts of patches, shade = fraction of the row.", alt="confusion matrix"))
+    rel = {m: sec["reliability"] for m, sec in present.items() if sec.get("reliability")}
+    if rel:
+        blocks.append(Image(figures.reliability_figure(rel), "Reliability diagram: how often the winning label is "
+                            "right against the probability the method gave it (below: patches per bin).",
+                            alt="reliability diagram"))
+    subs = [paper_table_section(run, table_trial)]
+    return Section("classification", "Classification", blocks, subs)
+
+
+def choose_table_trial(run: RunData, gallery: Sequence[GalleryTrial] | None, method: str = "paper") -> str | None:
+    """The trial of the paper's classification table: the first gallery trial (so its region numbers can be
+    read on the region image), else the first successful trial with ``method``, preferring the mock-up scene."""
+    with_method = [r for r in run.ok_records() if method in (r.get("methods") or {})]
+    ids = {r["trial_id"] for r in with_method}
+    for g in gallery or ():
+        if g.trial_id in ids:
+            return g.trial_id
+    mockup = [r for r in with_method if str(_get(r, "spec", "scene")).startswith("mockup")]
+    pick = (mockup or with_method or [None])[0]
+    return pick["trial_id"] if pick else None
+
+
+def paper_table_rows(patches: Sequence[Mapping[str, Any]], core_labels: Mapping[int, str] | None = None,
+                     min_pixels: int = MIN_PATCH_PIXELS) -> list[tuple[Cell, ...]]:
+    """The paper's table (region, P(cyl), P(sphere), P(cone), class) for the quadric patches: those of
+    ``min_pixels`` or more that the method did not label PLAN or whose truth is not PLAN; plus truth and the
+    core's label of the same patch when known."""
+    rows = []
+    for p in sorted(patches, key=lambda q: q["patch"]):
+        if p.get("n_pixels", 0) < min_pixels or (p["label"] == "PLAN" and p["truth"] == "PLAN"):
+            continue
+        pl = p.get("plausibilities") or {}
+        ok = p["label"] == p["truth"]
+        cells = [Cell(str(p["patch"]), "num"), Cell(str(p["n_pixels"]), "num"),
+                 *[Cell(fmt(pl.get(k), 2), "num") for k in ("CYL", "SPH", "CONE")],
+                 Cell(p["label"], "good" if ok else "bad", CLASS_COLOURS.get(p["label"], "")),
+                 Cell(p["truth"], colour=CLASS_COLOURS.get(p["truth"], "")),
+                 Cell(str(p.get("truth_feature") or "none"))]
+        if core_labels is not None:
+            cl = core_labels.get(int(p["patch"]), "n/a")
+            cells.append(Cell(cl, "good" if cl == p["truth"] else "bad", CLASS_COLOURS.get(cl, "")))
+        rows.append(tuple(cells))
+    return rows
+
+
+def paper_table_section(run: RunData, trial_id: str | None, method: str = "paper") -> Section:
+    sid, title = "paper-table", "The paper's classification table"
+    rec = next((r for r in run.ok_records() if r.get("trial_id") == trial_id), None)
+    patches = _get(rec, "methods", method, "classification", "patches") if rec else None
+    if not patches:
+        why = (f"no trial of this run has {method} classification records" if rec is None
+               else f"trial {trial_id} has no {method} classification records")
+        return Section(sid, title, [Note(f"Not available: {why}.", "missing")])
+    core = _get(rec, "methods", "core", "classification", "patches") or []
+    core_labels = {int(p["patch"]): p["label"] for p in core}
+    rows = paper_table_rows(patches, core_labels if core else None)
+    blocks: list[Any] = [Para(
+        f"As the table of the paper's section 6, for trial {trial_id} ({_get(rec, 'spec', 'group')}): the "
+        f"plausibilities that each quadric region is a cylinder, a sphere or a cone, and the label the paper's "
+        f"classifier ({method}) gave it (CYL, SPH or CONE when that plausibility is highest by more than 0.2, "
+        "OTH otherwise). Region numbers are the patch ids of the region image in the gallery. Added columns: the "
+        "truth class and feature, and the core's label of the same patch. Patches under "
+        f"{MIN_PATCH_PIXELS} pixels and planar patches labelled PLAN are not listed.")]
+    head = ("region", "pixels", "P(cyl)", "P(sphere)", "P(cone)", "class", "truth", "truth feature")
+    if core:
+        head = (*head, "core label")
+    if rows:
+        blocks.append(Table(head, tuple(rows), id="paper-table"))
+    else:
+        blocks.append(Note("No quadric region of 200 pixels or more in this trial.", "info"))
+    agg = paper_plausibility_summary(run.ok_records(), method)
+    if agg:
+        blocks.append(Table(("truth class", "patches", "mean P(cyl)", "mean P(sphere)", "mean P(cone)",
+                             "labelled right"), tuple(agg),
+                            caption=f"Over all trials: mean plausibilities of {method} per truth class "
+                                    f"(patches of {MIN_PATCH_PIXELS} pixels or more)"))
+    return Section(sid, title, blocks)
+
+
+def paper_plausibility_summary(records: Sequence[Mapping[str, Any]], method: str = "paper"
+                               ) -> list[tuple[Cell, ...]]:
+    """Per truth class: number of patches, mean plausibilities and the fraction labelled right."""
+    by: dict[str, list[Mapping[str, Any]]] = {}
+    for r in records:
+        for p in _get(r, "methods", method, "classification", "patches") or []:
+            if p.get("n_pixels", 0) >= MIN_PATCH_PIXELS:
+                by.setdefault(p["truth"], []).append(p)
+    rows = []
+    for c in CLASSES:
+        ps = by.get(c)
+        if not ps:
+            continue
+        mean = {k: sum((p.get("plausibilities") or {}).get(k, 0.0) for p in ps) / len(ps)
+                for k in ("CYL", "SPH", "CONE")}
+        right = sum(p["label"] == c for p in ps) / len(ps)
+        rows.append((Cell(c, colour=CLASS_COLOURS[c]), Cell(str(len(ps)), "num"),
+                     *[Cell(fmt(mean[k], 2), "num") for k in ("CYL", "SPH", "CONE")], Cell(fmt(right, 2), "num")))
+    return rows
+
+
+def pose_errors(records: Sequence[Mapping[str, Any]], method: str) -> dict[str, dict[str, list[float]]]:
+    """Per-trial pose errors of ``method``: ``{rotation_error_deg: {"after ICP": [...], "initial": [...]}, ...}``."""
+    out: dict[str, dict[str, list[float]]] = {"rotation_error_deg": {}, "translation_error_mm": {}}
+    for r in records:
+        pose = _get(r, "methods", method, "pose")
+        if not pose:
+            continue
+        for key in out:
+            if pose.get(key) is not None:
+                out[key].setdefault("after ICP", []).append(float(pose[key]))
+            if _get(pose, "initial", key) is not None:
+                out[key].setdefault("initial", []).append(float(pose["initial"][key]))
+    return out
+
+
+def pose_section(run: RunData) -> Section:
+    methods = run.methods
+    secs = {m: _get(run.sections(m), "pose") for m in methods}
+    if all(v is None for v in secs.values()):
+        return Section("pose", "Pose", [_not_built("pose", methods)])
+    blocks: list[Any] = [Para(
+        "Error of the estimated T_world_sensor against the truth (bop_toolkit definitions): rotation "
+        "arccos((tr(R_est R_gt') - 1) / 2) in degrees, translation in mm, before (initial, from the matched "
+        "invariants) and after ICP. Success: rotation <= 1 deg and translation <= 1 % of the trial's median true "
+        "range; 'constrained' counts only trials whose visible surfaces constrain all 6 DOF.")]
+    head = ("method", "success", "success (constrained)", "rot. median (deg)", "rot. p90 (deg)", "rot. max (deg)",
+            "trans. median (mm)", "trans. p90 (mm)", "trans. max (mm)", "ADD median (mm)")
+    rows = []
+    for m, p in secs.items():
+        for stage, sec in (("after ICP", p), ("initial", _get(p, "initial"))):
+            name = f"{m}, {stage}"
+            if p is None:
+                rows.append((Cell(name), *[Cell(NOT_BUILT, "missing")] * (len(head) - 1)))
+                break
+            if sec is None:
+                continue
+            rows.append((Cell(name), Cell(fmt(sec.get("success_rate")), "num"),
+                         Cell(fmt(sec.get("success_rate_constrained")), "num"),
+                         *[Cell(fmt(_get(sec, "rotation_error_deg", k)), "num") for k in ("median", "p90", "max")],
+                         *[Cell(fmt(_get(sec, "translation_error_mm", k), 1), "num") for k in ("median", "p90", "max")],
+                         Cell(fmt(_get(sec, "add_mm", "median"), 1), "num")))
+    blocks.append(Table(head, tuple(rows)))
+    all_errors = {m: pose_errors(run.ok_records(), m) for m in methods}
+    errors = {m: e for m, e in all_errors.items() if any(e.values())}
+    if errors:
+        blocks.append(Image(figures.pose_cdf_figure(errors), "Cumulative distribution of pose errors over trials, "
+                            "before and after ICP (grey line: the 1 deg success threshold). Symmetric-log axes.",
+                            alt="pose error CDF"))
+    else:
+        blocks.append(Note("No per-trial pose errors in the trial records: no CDF to draw.", "info"))
+    grows = [(Cell(g), Cell(fmt(_get(sec, "pose", "success_rate")) if _get(sec, "pose") else NOT_BUILT,
+                            "num" if _get(sec, "pose") else "missing"),
+              Cell(fmt(_get(sec, "pose", "rotation_error_deg", "median")), "num"),
+              Cell(fmt(_get(sec, "pose", "translation_error_mm", "median"), 1), "num"))
+             for g, sec in (run.summary.get("groups") or {}).items()]
+    if len(grows) > 1:
+        blocks.append(Table(("group", "success", "rot. median (deg)", "trans. median (mm)"), tuple(grows),
+                            caption="Per group, core method"))
+    return Section("pose", "Pose", blocks)
+
+
+def change_section(run: RunData) -> Section:
+    methods = run.methods
+    secs = {m: _get(run.sections(m), "change") for m in methods}
+    if all(v is None for v in secs.values()):
+        return Section("change", "Change", [_not_built("change", methods)])
+    present = {m: v for m, v in secs.items() if v is not None}
+    blocks: list[Any] = [Para(
+        "Per label precision, recall and F1 over the features the truth says are observable from the viewpoint; "
+        "macro-F1 over moved, missing, new and altered (unchanged is reported beside it).")]
+    rows = [(Cell(m), Cell(fmt(sec.get("macro_f1")), "num") if sec else Cell(NOT_BUILT, "missing"),
+             Cell(fmt(_get(sec, "objects", "macro_f1")), "num") if sec else Cell(NOT_BUILT, "missing"),
+             Cell(fmt(_get(sec, "displacement_error_mm", "median"), 1), "num") if sec else Cell(NOT_BUILT, "missing"))
+            for m, sec in secs.items()]
+    blocks.append(Table(("method", "macro-F1 (features)", "macro-F1 (objects)", "moved: displacement error median "
+                                                                               "(mm)"), tuple(rows)))
+    head = ["label", "support"]
+    for m in present:
+        head += [f"precision ({m})", f"recall ({m})", f"F1 ({m})"]
+    first = next(iter(present.values()))
+    lrows = []
+    for lab in CHANGE_LABELS:
+        cells = [Cell(lab, colour=CHANGE_COLOURS[lab]), Cell(fmt(_get(first, "per_label", lab, "support")), "num")]
+        for sec in present.values():
+            cells += [Cell(fmt(_get(sec, "per_label", lab, k)), "num") for k in ("precision", "recall", "f1")]
+        lrows.append(tuple(cells))
+    blocks.append(Table(tuple(head), tuple(lrows), caption="Per change label, features"))
+    per_label = {m: sec["per_label"] for m, sec in present.items() if sec.get("per_label")}
+    if per_label:
+        blocks.append(Image(figures.change_f1_figure(per_label), "F1 per change label (n: truth features with "
+                            "that label).", alt="per-label change F1"))
+    obj = {m: sec["objects"] for m, sec in present.items() if sec.get("objects")}
+    if obj:
+        orows = [(Cell(lab, colour=CHANGE_COLOURS[lab]),
+                  *[Cell(fmt(_get(o, "per_label", lab, "f1")), "num") for o in obj.values()]) for lab in CHANGE_LABELS]
+        blocks.append(Table(("label", *[f"F1 ({m})" for m in obj]), tuple(orows), caption="Per change label, objects"))
+    return Section("change", "Change", blocks)
+
+
+def parse_sweep_group(name: str) -> tuple[str, dict[str, float]] | None:
+    """``"factory_bay/factory_scanner[noise_scale=2]"`` -> ``("factory_bay/factory_scanner", {"noise_scale": 2.0})``
+    (None for a group without swept values)."""
+    found = SWEEP_GROUP.findall(name)
+    if not found:
+        return None
+    try:
+        values = {k: float(v) for k, v in found}
+    except ValueError:
+        return None
+    return SWEEP_GROUP.sub("", name), values
+
+
+SWEEP_METRICS = (("correct detection", ("segmentation", "correct_detection_rate")),
+                 ("accuracy", ("classification", "accuracy")),
+                 ("pose success", ("pose", "success_rate")),
+                 ("change macro-F1", ("change", "macro_f1")))
+
+
+def sweeps_section(run: RunData) -> Section | None:
+    """Metric against each swept parameter (DESIGN 10.13); None when the suite sweeps nothing."""
+    series: dict[tuple[str, str, tuple], list[tuple[float, Mapping[str, Any]]]] = {}
+    for name, g in (run.summary.get("groups") or {}).items():
+        parsed = parse_sweep_group(name)
+        if parsed is None:
+            continue
+        base, values = parsed
+        for key, v in values.items():
+            others = tuple(sorted((k, x) for k, x in values.items() if k != key))
+            series.setdefault((key, base, others), []).append((v, g))
+    if not series:
+        return None
+    blocks: list[Any] = []
+    for key in sorted({k for k, _, _ in series}):
+        lines: dict[str, list[tuple[float, float | None]]] = {}
+        rows = []
+        for (k, base, others), pts in sorted(series.items()):
+            if k != key:
+                continue
+            suffix = "".join(f" [{a}={b:g}]" for a, b in others)
+            for label, path in SWEEP_METRICS:
+                vals = [(v, None if isinstance(x := lookup(g, path), Missing) else x) for v, g in pts]
+                if any(x is not None for _, x in vals):
+                    lines[f"{label}, {base}{suffix}"] = vals
+            for v, g in sorted(pts, key=lambda t: t[0]):
+                rows.append((Cell(base + suffix), Cell(f"{v:g}", "num"), Cell(str(g.get("n_trials", "")), "num"),
+                             *[value_cell(lookup(g, path)) for _, path in SWEEP_METRICS]))
+        if lines:
+            blocks.append(Image(figures.sweep_figure(key, lines), f"Metrics against {key} (core method, one point "
+                                "per swept value; each value is a group of its own).", alt=f"metrics vs {key}"))
+        blocks.append(Table(("group", key, "trials", *[lab for lab, _ in SWEEP_METRICS]), tuple(rows),
+                            caption=f"Swept parameter {key}"))
+    return Section("sweeps", "Parameter sweeps", blocks)
+
+
+def timing_section(run: RunData) -> Section:
+    methods = run.methods
+    timings = {m: _get(run.sections(m), "timing_s") for m in methods}
+    timings = {m: t for m, t in timings.items() if t}
+    if not timings:
+        return Section("timing", "Timing", [Note("No timing in summary.json.", "missing")])
+    head = ["stage"] + [f"{m} median (s)" for m in timings] + [f"{m} p90 (s)" for m in timings]
+    rows = []
+    for stage in STAGES:
+        cells = [Cell(stage)]
+        for k in ("median", "p90"):
+            for t in timings.values():
+                v = t.get(stage)
+                cells.append(Cell(fmt(v.get(k), 3), "num") if v else Cell(NOT_BUILT if stage in ("matching", "icp",
+                                                                                                   "change")
+                                                                          else "n/a", "missing"))
+        rows.append(tuple(cells[:1] + _interleave(cells[1:], len(timings))))
+    head = ["stage"] + [f"{m} {k} (s)" for m in timings for k in ("median", "p90")]
+    blocks: list[Any] = [Para("Seconds per trial. sensor and total are per trial (shared by the methods); the other "
+                              "stages per method (a method that reuses the core's segmentation shows none)."),
+                         Table(tuple(head), tuple(rows))]
+    blocks.append(Image(figures.timing_figure(timings), "Median time per stage (bars) and 90th percentile "
+                        "(whiskers).", alt="stage times"))
+    rinfo = run.summary.get("run") or {}
+    if rinfo:
+        blocks.append(Para(f"Whole run: {fmt(rinfo.get('wall_s'), 1, 's')} wall time on "
+                           f"{rinfo.get('workers', '?')} worker(s), {fmt(rinfo.get('trials_per_minute'), 2)} trials "
+                           "per minute."))
+    return Section("timing", "Timing", blocks)
+
+
+def _interleave(cells: list[Cell], n_methods: int) -> list[Cell]:
+    """[med_m1, med_m2, p90_m1, p90_m2] -> [med_m1, p90_m1, med_m2, p90_m2]."""
+    med, p90 = cells[:n_methods], cells[n_methods:]
+    return [c for pair in zip(med, p90, strict=True) for c in pair]
+
+
+def methods_section(run: RunData) -> Section | None:
+    """Peer methods side by side, pooled and per group; None when the run has only the core."""
+    if len(run.methods) < 2:
+        return None
+    metrics = [m for m in HEADLINE if m.label in _GROUP_METRICS and m.path[0] != "timing_s"]
+    scopes: list[tuple[str, Mapping[str, Any]]] = [("all trials", run.summary)]
+    scopes += list((run.summary.get("groups") or {}).items())
+    rows = []
+    for scope_name, scope in scopes:
+        for meth in run.methods:
+            rows.append((Cell(scope_name), Cell(meth), *[value_cell(lookup(run.sections(meth, scope), m.path),
+                                                                    m.digits, m.unit) for m in metrics]))
+    blocks: list[Any] = [
+        Para("Every method runs on the same trials and images. " + "; ".join(
+            f"{m}: {METHOD_NOTES.get(m, 'peer method')}" for m in run.methods) + "."),
+        Table(("scope", "method", *[_short(m) for m in metrics]), tuple(rows), id="methods"),
+    ]
+    return Section("methods", "Methods side by side", blocks)
+
+
+ORACLE_NOTES = {"segmentation": "truth regions fed to the classifier", "classification": "truth classes",
+                "pairing": "truth pairings fed to the pose stage", "pose": "true pose fed to change detection"}
+
+
+def oracles_section(run: RunData) -> Section | None:
+    """Stage-isolating oracles beside the end-to-end core (DESIGN 10.10); None when the suite ran none."""
+    oracles = run.summary.get("oracles") or {}
+    if not oracles:
+        return None
+    metrics = [m for m in HEADLINE if m.path[0] != "timing_s"]
+    rows = [(Cell(m.label), Cell(m.direction), value_cell(lookup(run.summary, m.path), m.digits, m.unit),
+             *[value_cell(lookup(sec, m.path), m.digits, m.unit) for sec in oracles.values()]) for m in metrics]
+    blocks: list[Any] = [
+        Para("Each oracle replaces one stage of the core by the truth, so the figures after it show how much of "
+             "the end-to-end error that stage causes. " + "; ".join(
+                 f"{name}: {ORACLE_NOTES.get(name, 'oracle')}" for name in oracles) + "."),
+        Table(("metric", "better", "core (end to end)", *[f"oracle: {o}" for o in oracles]), tuple(rows),
+              id="oracles"),
+    ]
+    return Section("oracles", "Stage oracles", blocks)
+
+
+def gallery_section(gallery: Sequence[GalleryTrial] | None) -> Section:
+    if gallery is None:
+        return Section("gallery", "Gallery", [Note(
+            "No gallery in this rendering: 'harness report RUN_DIR' re-runs the worst trials (deterministically) "
+            "to draw their pictures.", "info")])
+    if not gallery:
+        return Section("gallery", "Gallery", [Note("No successful trial to show.", "info")])
+    blocks: list[Any] = [Para(
+        "Selected trials, worst first (the mean of the trial's correct-detection rate, classification accuracy and, "
+        "once built, pose success and change accuracy). Each was re-run from its record (same seeds, same "
+        "image) to draw: the shaded range image, the core's regions (numbered as in the paper's table), its "
+        "classification over the shaded image (red stripes: wrong label), the truth change map and, once built, "
+        "registration before and after ICP and the predicted change map.")]
+    subs = []
+    for g in gallery:
+        sb: list[Any] = [Para(f"Group {g.group}. {g.why}")]
+        if g.panels:
+            sb.append(Grid(tuple(g.panels)))
+        sb += [Note(n, "missing" if NOT_BUILT in n else "info") for n in g.notes]
+        subs.append(Section(f"trial-{_slug(g.trial_id)}", g.trial_id, sb))
+    return Section("gallery", "Gallery (worst trials first)", blocks, subs)
+
+
+def regression_section(run: RunData, base: Mapping[str, Any], base_name: str,
+                       comparison: Sequence[Mapping[str, Any]] | None) -> Section:
+    """What moved against the baseline run, by how much, and (with ``comparison`` rows from ``harness compare``)
+    pass or fail."""
+    blocks: list[Any] = []
+    if comparison is not None:
+        bad = [r for r in comparison if r.get("verdict") in ("regression", "missing")]
+        if bad:
+            blocks.append(Note(f"{len(bad)} regression(s) against {base_name} ({len(comparison)} metrics compared "
+                               "by the rules of harness compare).", "fail"))
+        else:
+            blocks.append(Note(f"No regression against {base_name} ({len(comparison)} metrics compared by the rules "
+                               "of harness compare).", "pass"))
+    else:
+        blocks.append(Note("Deltas only: no pass/fail verdicts were supplied (run 'harness report RUN_DIR "
+                           "--baseline BASE' or 'harness compare BASE RUN_DIR' for them).", "info"))
+    if base.get("config_hash") != run.summary.get("config_hash"):
+        blocks.append(Note(f"The runs used different suite configurations (hash {base.get('config_hash')} vs "
+                           f"{run.summary.get('config_hash')}): differences need not come from the code.", "warn"))
+    bprov, cprov = base.get("provenance") or {}, run.summary.get("provenance") or {}
+    blocks.append(Table(("", "baseline", "this run"), (
+        (Cell("run"), Cell(base_name), Cell(str(run.root))),
+        (Cell("suite"), Cell(str(base.get("suite"))), Cell(str(run.summary.get("suite")))),
+        (Cell("git commit"), Cell(str(bprov.get("git_commit") or "n/a")), Cell(str(cprov.get("git_commit") or "n/a"))),
+        (Cell("trials (failed)"), Cell(f"{base.get('n_trials')} ({base.get('n_failed')})"),
+         Cell(f"{run.summary.get('n_trials')} ({run.summary.get('n_failed')})")))))
+    rows = []
+    for meth in run.methods:
+        if meth != "core" and meth not in (base.get("baselines") or {}):
+            continue
+        for d in headline_deltas(base, run.summary, meth):
+            if meth != "core" and not d["delta"] and (d["base"] is None) == (d["candidate"] is None):
+                continue  # peers: only what moved
+            style = "" if d["better"] is None else ("good" if d["better"] else "bad")
+            m = next(x for x in HEADLINE if x.label == d["label"])
+            rows.append((Cell(meth), Cell(d["label"]), _delta_value(d["base"], base, m, meth),
+                         _delta_value(d["candidate"], run.summary, m, meth),
+                         Cell("" if d["delta"] is None else f"{d['delta']:+.{m.digits}f}", style or "num"),
+                         Cell(d["direction"])))
+    blocks.append(Table(("method", "metric", "baseline", "this run", "change", "better"), tuple(rows),
+                        caption="Headline metrics: all of the core's, the peers' where they moved "
+                                "(green: better, red: worse)"))
+    if comparison is not None:
+        order = {"regression": 0, "missing": 1, "improved": 2, "new": 3}
+        moved = [r for r in comparison if r.get("verdict") in order]
+        moved.sort(key=lambda r: (order[r["verdict"]], -abs(r.get("delta") or 0.0), r["metric"]))
+        shown = moved[:60]
+        if shown:
+            blocks.append(Table(("metric", "baseline", "this run", "change", "better", "verdict"), tuple(
+                (Cell(r["metric"]), Cell(fmt(r.get("base"), 4), "num"), Cell(fmt(r.get("candidate"), 4), "num"),
+                 Cell("" if r.get("delta") is None else f"{r['delta']:+.4g}", "num"), Cell(r.get("direction", "")),
+                 Cell(r["verdict"].upper() if r["verdict"] in ("regression", "missing") else r["verdict"],
+                      "bad" if r["verdict"] in ("regression", "missing") else "good" if r["verdict"] == "improved"
+                      else "")) for r in shown),
+                caption="Metrics beyond tolerance (regressions first)" + (
+                    f"; {len(moved) - len(shown)} more not shown" if len(moved) > len(shown) else "")))
+        n_ok = sum(1 for r in comparison if r.get("verdict") == "ok")
+        blocks.append(Para(f"{n_ok} metric(s) within tolerance; {sum(1 for r in comparison if not r.get('verdict'))} "
+                           "reported without a rule (counts, settings, times unless --check-time)."))
+    return Section("regression", "Regression against the baseline", blocks)
+
+
+def _delta_value(v: float | None, summary: Mapping[str, Any], m: Metric, method: str) -> Cell:
+    if v is not None:
+        return Cell(fmt(v, m.digits, m.unit), "num")
+    sections = summary if method == "core" else (summary.get("baselines") or {}).get(method)
+    return value_cell(lookup(sections, m.path), m.digits, m.unit)
+
+
+def failures_section(run: RunData) -> Section:
+    fails = run.summary.get("failures") or []
+    if not fails:
+        return Section("failures", "Failures", [Para("No trial failed.")])
+    rows = tuple((Cell(str(f.get("trial_id"))), Cell(str(f.get("reason", "")))) for f in fails)
+    return Section("failures", "Failures", [Note(f"{len(fails)} trial(s) failed; they are left out of every "
+                                                 "figure above.", "warn"), Table(("trial", "reason"), rows)])
+
+
+# -- the document and the files -----------------------------------------------------------------------------
+def build_document(run: RunData, baseline: Mapping[str, Any] | None = None, baseline_name: str = "",
+                   gallery: Sequence[GalleryTrial] | None = None,
+                   comparison: Sequence[Mapping[str, Any]] | None = None) -> Document:
+    """The report of ``run`` as a document tree (see :mod:`reports.document`)."""
+    s = run.summary
+    when = _dt.datetime.fromtimestamp((run.root / "summary.json").stat().st_mtime, _dt.UTC)
+    subtitle = (f"suite {s.get('suite')} - {s.get('n_trials', 0)} trials, {s.get('n_failed', 0)} failed - "
+                f"{when:%Y-%m-%d %H:%M} UTC - {run.root}")
+    sections = [headline_section(run), overview_section(run), segmentation_section(run),
+                classification_section(run, choose_table_trial(run, gallery)), pose_section(run), change_section(run)]
+    sweeps = sweeps_section(run)
+    if sweeps is not None:
+        sections.append(sweeps)
+    sections.append(timing_section(run))
+    for extra in (methods_section(run), oracles_section(run)):
+        if extra is not None:
+            sections.append(extra)
+    sections.append(gallery_section(gallery))
+    if baseline is not None:
+        sections.append(regression_section(run, baseline, baseline_name, comparison))
+    sections.append(failures_section(run))
+    return Document(f"Evaluation report: {s.get('suite', 'run')}", subtitle, sections)
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.chmod(tmp, 0o644)  # a report is for reading (mkstemp creates 0600)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def render_report(run_dir: str | Path, baseline_dir: str | Path | None = None,
+                  gallery: Sequence[GalleryTrial] | None = None,
+                  comparison: Sequence[Mapping[str, Any]] | None = None) -> tuple[Path, Path]:
+    """Write ``report.html`` and ``report.md`` into ``run_dir``.
+
+    Parameters
+    ----------
+    run_dir : a run directory (``summary.json``, ``run.json``, ``trials/``).
+    baseline_dir : another run directory (or its summary.json) to compare against: adds the regression section.
+    gallery : pictures of selected trials (``harness report`` re-runs them); None: no gallery.
+    comparison : ``harness compare`` rows ``{metric, base, candidate, delta, direction, verdict}`` for the
+        regression section's pass/fail; without them the section shows deltas only.
+
+    Returns
+    -------
+    (html_path, md_path)
+    """
+    run = load_run(run_dir)
+    base = load_baseline_summary(baseline_dir) if baseline_dir is not None else None
+    doc = build_document(run, base, str(baseline_dir or ""), gallery, comparison)
+    html_path, md_path = run.root / "report.html", run.root / "report.md"
+    _write_atomic(html_path, render_html(doc))
+    _write_atomic(md_path, render_markdown(doc))
+    return html_path, md_path
+
+
+def image(png: bytes, caption: str, alt: str = "", width_px: int = 340) -> Image:
+    """A gallery panel (convenience for callers building :class:`GalleryTrial` s)."""
+    return Image(png, caption, alt or caption, width_px)
