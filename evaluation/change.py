@@ -15,34 +15,22 @@ from typing import Any
 import numpy as np
 
 from recognition.change import LABELS, ChangeResult
-from recognition.predict import PredictedImage
+from recognition.verify import Prediction, pixels_by_feature
 from scenes.perturb import ChangeTruth
 from sensors.range_image import ScanTruth
 
 MIN_PIXELS = 200
 
 
-def _pixels_per_feature(surface_id: np.ndarray, surface_features: tuple[str, ...]) -> dict[str, np.ndarray]:
-    sid = surface_id.reshape(-1)
-    hit = np.flatnonzero(sid >= 0)
-    feats = np.array(surface_features, dtype=object)[sid[hit]]
-    out: dict[str, list[int]] = {}
-    order = np.argsort(feats, kind="stable")
-    names, starts = np.unique(feats[order], return_index=True)
-    for n, g in zip(names, np.split(hit[order], starts[1:]), strict=True):
-        out[str(n)] = g
-    return out
-
-
-def observable_features(truth: ScanTruth, change_truth: ChangeTruth, apriori_at_truth: PredictedImage,
+def observable_features(truth: ScanTruth, change_truth: ChangeTruth, apriori_at_truth: Prediction,
                         min_pixels: int = MIN_PIXELS) -> dict[str, str]:
     """Truth label of every observable feature (a priori features and new ones)."""
-    actual_pix = _pixels_per_feature(truth.surface_id, tuple(s.feature_id for s in truth.surfaces))
+    actual_pix = pixels_by_feature(truth.surface_id, tuple(s.feature_id for s in truth.surfaces))
     # a priori pixels not occluded by the actual scene: the model surface is at or in front of what is there
     tol = 3 * np.nan_to_num(truth.sigma, nan=0.0) + 1e-3
     unoccluded = np.isfinite(apriori_at_truth.range) & ~(truth.true_range < apriori_at_truth.range - tol)
     sid = np.where(unoccluded, apriori_at_truth.surface_id, -1)
-    old_pix = _pixels_per_feature(sid, apriori_at_truth.surface_features)
+    old_pix = pixels_by_feature(sid, tuple(s.feature_id for s in apriori_at_truth.surfaces))
     out = {}
     for fid, change in change_truth.features.items():
         n_new = len(actual_pix.get(fid, ()))
@@ -62,12 +50,12 @@ def observable_features(truth: ScanTruth, change_truth: ChangeTruth, apriori_at_
 
 
 def change_section(result: ChangeResult, truth: ScanTruth, change_truth: ChangeTruth,
-                   apriori_at_truth: PredictedImage, object_of: dict[str, str],
+                   apriori_at_truth: Prediction, object_of: dict[str, str],
                    min_pixels: int = MIN_PIXELS) -> dict[str, Any]:
     """Per-trial change record: (truth, predicted) pairs for observable features and objects, false ``new``
     patches, and the displacement error of correctly labelled moved features."""
     observable = observable_features(truth, change_truth, apriori_at_truth, min_pixels)
-    actual_pix = _pixels_per_feature(truth.surface_id, tuple(s.feature_id for s in truth.surfaces))
+    actual_pix = pixels_by_feature(truth.surface_id, tuple(s.feature_id for s in truth.surfaces))
     label_map = result.label_map.reshape(-1)
     new_idx = LABELS.index("new")
     features = []

@@ -19,6 +19,7 @@ from recognition.classify import CLASSES, PatchClassification
 from recognition.describe import SceneDescription
 from recognition.segmentation import Patch, Segmentation, SurfaceType
 from recognition.surface_fit import fit_plane as fit_plane_lsq
+from scenes.perturb import ChangeTruth
 from sensors.range_image import Scan, ScanTruth
 
 ORACLES = ("segmentation", "classification", "pairing", "pose")
@@ -89,11 +90,18 @@ def _fit_class(cls: str, points: np.ndarray, sigma: np.ndarray, normals: np.ndar
     return None
 
 
-def truth_pairings(description: SceneDescription, truth: ScanTruth) -> tuple[tuple[int, str | None], ...]:
-    """Patch id -> the model feature it truly lies on (None for patches on no a priori feature)."""
+def truth_pairings(description: SceneDescription, truth: ScanTruth,
+                   change_truth: ChangeTruth) -> dict[int, tuple[str, str]]:
+    """Patch id -> (model feature, part) it truly lies on, for patches on a priori features that kept their
+    place (unchanged in the truth): the correspondences an ideal matcher would give the pose stage."""
     sid = truth.surface_id.reshape(-1)
-    out = []
+    out = {}
     for p in description.patches:
         s, frac = patch_truth(p.pixels, sid)
-        out.append((int(p.id), truth.surfaces[s].feature_id if s >= 0 and frac >= 0.5 else None))
-    return tuple(out)
+        if s < 0 or frac < 0.5:
+            continue
+        surface = truth.surfaces[s]
+        change = change_truth.features.get(surface.feature_id)
+        if change is not None and change.label == "unchanged":
+            out[int(p.id)] = (surface.feature_id, surface.part)
+    return out

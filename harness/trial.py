@@ -267,7 +267,7 @@ def estimate_pose(ctx: TrialContext, desc, oracle: str | None):
     if localise is None:
         return None
     pairings = truth_pairings(desc, truth, ctx.prepared.change_truth) if oracle == "pairing" else None
-    result = localise(desc, ctx.scan, ctx.prepared.apriori, LocaliseParams(), ctx.prepared.predictor,
+    result = localise(desc, ctx.scan, ctx.prepared.apriori, LocaliseParams(), ctx.prepared.predictor.simulator,
                       pairings=pairings)
     rec = pose_section(result, truth.T_world_sensor, ctx.median_range, ctx.constrained,
                        ctx.prepared.model_points)

@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from recognition.describe import SceneDescription
-from recognition.predict import ModelPredictor, PredictedImage
+from recognition.predict import ModelPredictor
+from recognition.verify import Prediction
 from scenes.features import Cone, Cylinder, Feature, Plane, Sphere, Torus
 from scenes.geometry import transform_points
 from scenes.model import SceneModel
@@ -121,7 +122,7 @@ def pixel_allowance(scan: Scan, sigma: np.ndarray, normals: np.ndarray, cov_T: n
     return params.k_sigma * np.sqrt(np.nan_to_num(sigma) ** 2 + pose**2)
 
 
-def classify_pixels(scan: Scan, predicted: PredictedImage, model: SceneModel, allowance: np.ndarray
+def classify_pixels(scan: Scan, predicted: Prediction, model: SceneModel, allowance: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Each pixel's relation to the a priori model: explained by its predicted surface, on another model
     surface, in front of the prediction (unexplained), behind it (unexplained), or no data.
@@ -220,7 +221,7 @@ def _same_shape(f: Feature, prim: dict, tol: float) -> bool | None:
 
 
 def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel, T_world_sensor: np.ndarray,
-                   cov_T_world_sensor: np.ndarray | None = None, predicted: PredictedImage | None = None,
+                   cov_T_world_sensor: np.ndarray | None = None, predicted: Prediction | None = None,
                    predictor: ModelPredictor | None = None, params: ChangeParams = ChangeParams()) -> ChangeResult:
     """Label every a priori feature and object, and find new patches (see the module docstring).
 
@@ -237,7 +238,7 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
     T = np.asarray(T_world_sensor, dtype=np.float64)
-    if predicted is None:
+    if predicted is None or predicted.stride != 1:  # change detection needs the full-resolution prediction
         predicted = (predictor or ModelPredictor(model)).predict(scan.sensor, T)
     timing["predict"] = time.perf_counter() - t0
     t0 = time.perf_counter()

@@ -1,0 +1,183 @@
+"""Pose metrics (definitions of bop_toolkit's ``pose_error.py``; Hodan et al., "BOP: Benchmark for 6D
+Object Pose Estimation", ECCV 2018, doi:10.1007/978-3-030-01249-6_2) and the pose section of a trial.
+
+All functions are pure. Poses are ``T_world_sensor`` (``p_world = R p_sensor + t``); rotation errors are in
+degrees, translation errors and ADD in millimetres. Success (DESIGN 10.6): rotation <= 1 deg and translation
+<= 1 % of the median true range of the trial. Whether a trial "sees enough structure to constrain 6 DOF" is
+decided here from the truth (:func:`constrains_pose`), never by the core.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from recognition.pose import AxisPair, PlanePair, PointPair, free_dof_of, residuals
+from scenes.features import Cone, Cylinder, Plane, Sphere, Torus
+from scenes.geometry import invert_transform
+from scenes.model import SceneModel
+from sensors.range_image import ScanTruth
+
+__all__ = ["rotation_error_deg", "translation_error_mm", "add_mm", "pose_section", "constrains_pose",
+           "SUCCESS_ROTATION_DEG", "SUCCESS_TRANSLATION_FRACTION"]
+
+SUCCESS_ROTATION_DEG = 1.0
+SUCCESS_TRANSLATION_FRACTION = 0.01
+
+
+def _check_R(R, name: str) -> np.ndarray:
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape != (3, 3):
+        raise ValueError(f"expected {name} of shape (3, 3), got {R.shape}")
+    return R
+
+
+def _check_t(t, name: str) -> np.ndarray:
+    t = np.asarray(t, dtype=np.float64).reshape(-1)
+    if t.shape != (3,):
+        raise ValueError(f"expected {name} of shape (3,), got {t.shape}")
+    return t
+
+
+def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
+    """Angle of ``R_est R_gt'``: ``arccos((tr(R_est R_gt') - 1) / 2)`` in degrees (bop_toolkit ``re``).
+
+    >>> rotation_error_deg(np.eye(3), np.eye(3))
+    0.0
+    """
+    R_est, R_gt = _check_R(R_est, "R_est"), _check_R(R_gt, "R_gt")
+    c = (np.trace(R_est @ R_gt.T) - 1.0) / 2.0
+    return math.degrees(math.acos(min(1.0, max(-1.0, float(c)))))
+
+
+def translation_error_mm(t_est: np.ndarray, t_gt: np.ndarray) -> float:
+    """Euclidean distance of the translations (metres in) in millimetres (bop_toolkit ``te``)."""
+    return 1000.0 * float(np.linalg.norm(_check_t(t_est, "t_est") - _check_t(t_gt, "t_gt")))
+
+
+def add_mm(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray,
+           model_points: np.ndarray) -> float:
+    """ADD: mean distance (mm) of ``model_points`` (N, 3) mapped by the two poses (bop_toolkit ``add``).
+
+    The points are in the frame the poses map from (here: sensor-frame points, e.g. the scan's, or any
+    fixed sample); NaN when there are no points.
+    """
+    R_est, R_gt = _check_R(R_est, "R_est"), _check_R(R_gt, "R_gt")
+    t_est, t_gt = _check_t(t_est, "t_est"), _check_t(t_gt, "t_gt")
+    pts = np.asarray(model_points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"expected model_points of shape (N, 3), got {pts.shape}")
+    if len(pts) == 0:
+        return math.nan
+    d = pts @ (R_est - R_gt).T + (t_est - t_gt)
+    return 1000.0 * float(np.mean(np.linalg.norm(d, axis=1)))
+
+
+def _errors(T, G, median_true_range_m, model_points):
+    if T is None:
+        return {"rotation_error_deg": None, "translation_error_mm": None, "add_mm": None, "success": False}
+    T = np.asarray(T, dtype=np.float64)
+    re = rotation_error_deg(T[:3, :3], G[:3, :3])
+    te = translation_error_mm(T[:3, 3], G[:3, 3])
+    add = add_mm(T[:3, :3], T[:3, 3], G[:3, :3], G[:3, 3], model_points) if model_points is not None else None
+    ok = re <= SUCCESS_ROTATION_DEG and te <= 1000.0 * SUCCESS_TRANSLATION_FRACTION * median_true_range_m
+    return {"rotation_error_deg": re, "translation_error_mm": te, "add_mm": add, "success": bool(ok)}
+
+
+def pose_section(result, truth_T_world_sensor: np.ndarray, median_true_range_m: float, constrained: bool,
+                 model_points: np.ndarray | None) -> dict:
+    """The ``pose`` section of a trial record.
+
+    Parameters
+    ----------
+    result : :class:`recognition.localise.PoseResult`.
+    truth_T_world_sensor : ndarray of shape (4, 4), the true pose.
+    median_true_range_m : median of the trial's true ranges (metres): sets the translation threshold.
+    constrained : :func:`constrains_pose` of the trial (from the truth).
+    model_points : ndarray of shape (N, 3) or None, points for ADD (sensor frame).
+
+    Returns
+    -------
+    dict with ``rotation_error_deg``, ``translation_error_mm``, ``add_mm`` (None when the core returned no
+    pose), ``success`` (False then), ``constrained``, ``ok``, ``confidence``, ``free_dof``, ``initial``
+    (the same errors before ICP), ``n_hypotheses``, ``n_nodes``, ``reason``.
+    """
+    G = np.asarray(truth_T_world_sensor, dtype=np.float64)
+    if G.shape != (4, 4):
+        raise ValueError(f"expected truth_T_world_sensor of shape (4, 4), got {G.shape}")
+    final = _errors(result.T_world_sensor, G, median_true_range_m, model_points)
+    init = _errors(result.T_world_sensor_initial, G, median_true_range_m, model_points)
+    out = dict(final)
+    out.update({
+        "constrained": bool(constrained),
+        "ok": bool(result.ok),
+        "reason": result.reason,
+        "confidence": float(result.confidence),
+        "free_dof": int(result.free_dof),
+        "n_hypotheses": int(result.n_hypotheses),
+        "n_nodes": int(result.n_nodes),
+        "initial": {k: init[k] for k in ("rotation_error_deg", "translation_error_mm", "success")},
+    })
+    return out
+
+
+def constrains_pose(truth: ScanTruth, model: SceneModel, min_pixels: int = 200, *, sigma_angle: float = 0.01,
+                    sigma_pos_m: float = 0.01, max_sigma: float = 0.1) -> bool:
+    """Whether the truth surfaces visible with >= ``min_pixels`` constrain all 6 DOF of the pose.
+
+    Every such surface contributes its exact constraint (plane face or cap: normal and offset; cylinder and
+    cone side: axis line, the cone also its position along the axis; sphere: centre; torus: axis line and
+    centre) with sigmas ``sigma_angle`` (rad) and ``sigma_pos_m``, in the sensor frame; the pose is
+    constrained when no direction is left with a sigma above ``max_sigma`` (rad, or the median surface
+    distance as length unit) - see :func:`recognition.pose.free_dof_of`.
+
+    Parameters
+    ----------
+    truth : the trial's :class:`sensors.range_image.ScanTruth`.
+    model : the scene whose features the truth surfaces name (the actual, perturbed scene).
+    """
+    counts = truth.surface_pixel_counts()
+    T_sw = invert_transform(np.asarray(truth.T_world_sensor, dtype=np.float64))
+    by_id = {f.id: f for f in model.features}
+    pairs = []
+    dists = []
+    for sid, n in counts.items():
+        if n < min_pixels:
+            continue
+        surf = truth.surfaces[sid]
+        f = by_id.get(surf.feature_id)
+        if f is None:
+            continue
+        f = f.transformed(T_sw)
+        if isinstance(f, Plane):
+            pairs.append(PlanePair(f.normal, f.centre, f.normal, float(f.normal @ f.centre), sigma_angle,
+                                   sigma_pos_m))
+            dists.append(np.linalg.norm(f.centre))
+        elif isinstance(f, Cylinder):
+            if surf.part.startswith("cap"):
+                a = f.axis if surf.part == "cap_end" else -f.axis
+                c = f.centre + (0.5 if surf.part == "cap_end" else -0.5) * f.length * f.axis
+                pairs.append(PlanePair(a, c, a, float(a @ c), sigma_angle, sigma_pos_m))
+                dists.append(np.linalg.norm(c))
+            else:
+                pairs.append(AxisPair(f.axis, f.centre, f.axis, f.centre, sigma_angle, sigma_pos_m))
+                dists.append(np.linalg.norm(f.centre))
+        elif isinstance(f, Cone):
+            mid = f.apex + 0.5 * (f.start + f.end) * f.axis
+            pairs.append(AxisPair(f.axis, mid, f.axis, f.apex, sigma_angle, sigma_pos_m, signed=True,
+                                  along_m=0.5 * (f.start + f.end), sigma_along=sigma_pos_m / max(
+                                      math.tan(f.half_angle), 1e-3)))
+            dists.append(np.linalg.norm(mid))
+        elif isinstance(f, Sphere):
+            pairs.append(PointPair(f.centre, f.centre, sigma_pos_m))
+            dists.append(np.linalg.norm(f.centre))
+        elif isinstance(f, Torus):
+            pairs.append(AxisPair(f.axis, f.centre, f.axis, f.centre, sigma_angle, sigma_pos_m))
+            pairs.append(PointPair(f.centre, f.centre, sigma_pos_m))
+            dists.append(np.linalg.norm(f.centre))
+    if not pairs:
+        return False
+    _, J = residuals(pairs, (1,) * len(pairs), np.eye(4))
+    free, _ = free_dof_of(J, float(np.median(dists)), max_sigma)
+    return free == 0

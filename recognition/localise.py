@@ -1,0 +1,251 @@
+"""Localisation: matching, pose, verification and ICP refinement in one call (the paper's section 4).
+
+``localise(description, scan, model)`` estimates ``T_world_sensor`` from a scene description and the a
+priori model only (plus ``scan.pose_prior`` when the suite gives one, DESIGN 10.1):
+
+1. interpretation-tree matching of PLAN/CYL/CONE/SPH patches to model elements
+   (:mod:`recognition.matching`), each hypothesis with a closed-form, refined pose (:mod:`recognition.pose`);
+2. verification of the best hypotheses by the model's predicted range image (:mod:`recognition.verify`,
+   cast on a coarse grid of the sensor's own rays); the best agreement wins;
+3. ICP against the model surfaces predicted visible from that pose (:mod:`recognition.icp`);
+4. the prediction at the final pose (full resolution), returned for change detection (DESIGN 10.11), and
+   the final confidence (agreement at the final pose). OTH patches and the patches left to wildcards are
+   then paired by overlap with the prediction (the paper's second, looser stage).
+
+The result says why when it fails (``ok=False`` and ``reason``): no hypothesis, low confidence, pose left
+underconstrained. Nothing here sees the truth.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from recognition.describe import SceneDescription
+from recognition.icp import IcpParams, icp_refine
+from recognition.matching import MatchParams, given_match, match, model_elements
+from recognition.pose import PoseEstimate
+from recognition.verify import Prediction, VerifyParams, agreement, predict
+from scenes.model import SceneModel
+from sensors.range_image import Scan
+
+__all__ = ["LocaliseParams", "PoseResult", "localise", "overlap_pairings"]
+
+
+@dataclass(frozen=True)
+class LocaliseParams:
+    """Parameters of :func:`localise`.
+
+    Attributes
+    ----------
+    match : interpretation-tree parameters.
+    verify : verification parameters.
+    icp : ICP parameters.
+    max_verify : at most this many hypotheses are verified (best tree score first).
+    min_confidence : below this final agreement the result is not ok.
+    use_icp : run ICP (always, to tighten the pose; it also fixes the DOF the pairs leave free).
+    prior_angle_deg, prior_dist_m : how far the true pose may be from ``scan.pose_prior`` (its noise);
+        candidates are restricted accordingly. Ignored without a prior.
+    second_stage_fraction : a patch left out of the tree is paired with the model feature that the
+        prediction shows on at least this fraction of its agreeing pixels.
+    """
+
+    match: MatchParams = field(default_factory=MatchParams)
+    verify: VerifyParams = field(default_factory=VerifyParams)
+    icp: IcpParams = field(default_factory=IcpParams)
+    max_verify: int = 6
+    min_confidence: float = 0.4
+    use_icp: bool = True
+    prior_angle_deg: float = 5.0
+    prior_dist_m: float = 0.3
+    second_stage_fraction: float = 0.5
+
+    def __post_init__(self):
+        if self.max_verify < 1:
+            raise ValueError(f"max_verify must be >= 1, got {self.max_verify}")
+        if not 0 <= self.min_confidence <= 1:
+            raise ValueError(f"min_confidence must be in [0, 1], got {self.min_confidence}")
+        if self.prior_angle_deg <= 0 or self.prior_dist_m <= 0:
+            raise ValueError("prior_angle_deg and prior_dist_m must be > 0")
+        if not 0 < self.second_stage_fraction <= 1:
+            raise ValueError(f"second_stage_fraction must be in (0, 1], got {self.second_stage_fraction}")
+
+
+@dataclass(frozen=True)
+class PoseResult:
+    """Result of :func:`localise`.
+
+    Attributes
+    ----------
+    ok : bool; reason : why not ok ("" when ok).
+    T_world_sensor : ndarray of shape (4, 4) or None, the final pose (after ICP).
+    T_world_sensor_initial : ndarray of shape (4, 4) or None, closed form + weighted refinement (before ICP).
+    cov_T_world_sensor : ndarray of shape (6, 6) or None, over (rotation vector rad, translation m), left
+        perturbation in the world frame (ICP's when it ran, else the pairs').
+    free_dof : int, degrees of freedom left unconstrained (0 when fully constrained).
+    confidence : float in [0, 1], agreement of the data with the model predicted at the final pose.
+    pairings : tuple of (patch id, model feature id or None = wildcard).
+    n_hypotheses : int, hypotheses from the tree; n_nodes : int, nodes it visited.
+    predicted : :class:`recognition.verify.Prediction` at the final pose (full resolution) or None.
+    timing_s : dict, seconds per stage (matching, pose, verification, icp, predict).
+    """
+
+    ok: bool
+    reason: str
+    T_world_sensor: np.ndarray | None
+    T_world_sensor_initial: np.ndarray | None
+    cov_T_world_sensor: np.ndarray | None
+    free_dof: int
+    confidence: float
+    pairings: tuple[tuple[int, str | None], ...]
+    n_hypotheses: int
+    n_nodes: int
+    predicted: object | None
+    timing_s: dict[str, float]
+
+
+def _check_T(T, name: str) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ValueError(f"expected {name} of shape (4, 4), got {T.shape}")
+    return T
+
+
+def overlap_pairings(description: SceneDescription, prediction: Prediction, exclude: set[int],
+                     min_fraction: float, params: VerifyParams, scan: Scan) -> dict[int, str]:
+    """Second stage: pair patches (not in ``exclude``) with the model feature the prediction shows on most
+    of their agreeing pixels (at least ``min_fraction`` of the patch's pixels on the prediction's grid)."""
+    s, o = prediction.stride, prediction.offset
+    h, w = prediction.range.shape
+    labels = description.labels[o::s, o::s][:h, :w]
+    meas = scan.range[o::s, o::s][:h, :w]
+    sig = description.sigma[o::s, o::s][:h, :w]
+    thr = params.k_sigma * np.nan_to_num(sig, nan=0.0) + params.abs_m + params.rel * np.nan_to_num(meas, nan=0.0)
+    with np.errstate(invalid="ignore"):
+        good = (np.abs(meas - prediction.range) <= thr) & (prediction.surface_id >= 0)
+    fid_of_surface = np.array([sf.feature_id for sf in prediction.surfaces], dtype=object)
+    out: dict[int, str] = {}
+    lab = labels.ravel()
+    gd = good.ravel()
+    sid = prediction.surface_id.ravel()
+    for p in description.patches:
+        if p.id in exclude or p.n_pixels < params.min_pixels:
+            continue
+        on = lab == p.id
+        n_on = int(on.sum())
+        if n_on == 0:
+            continue
+        hit = sid[on & gd]
+        if len(hit) == 0:
+            continue
+        fids = fid_of_surface[hit]
+        vals, counts = np.unique(fids.astype(str), return_counts=True)
+        k = int(np.argmax(counts))
+        if counts[k] >= min_fraction * n_on:
+            out[p.id] = str(vals[k])
+    return out
+
+
+def localise(description: SceneDescription, scan: Scan, model: SceneModel,
+             params: LocaliseParams = LocaliseParams(), model_simulator=None,
+             pairings: dict[int, tuple[str, str]] | None = None) -> PoseResult:
+    """Estimate ``T_world_sensor`` of ``scan`` against the a priori ``model``.
+
+    Parameters
+    ----------
+    description : :func:`recognition.describe.describe` of the scan.
+    scan : the scan (sensor model, points; ``pose_prior`` (4, 4) restricts the search when present).
+    model : the a priori model.
+    params : :class:`LocaliseParams`.
+    model_simulator : ``sensors.simulate.Simulator.from_scene(model)``, built once per model and reused
+        (compiling costs 0.3-1 s); built here when None.
+    pairings : given correspondences ``{patch id: (model feature id, part)}`` replacing the tree search
+        (the pose is then computed from them in closed form, verified and refined as usual).
+
+    Returns
+    -------
+    PoseResult (never raises on a degenerate scene: ``ok=False`` and ``reason``).
+    """
+    timing = {"matching": 0.0, "pose": 0.0, "verification": 0.0, "icp": 0.0, "predict": 0.0}
+    prior = None if scan.pose_prior is None else _check_T(scan.pose_prior, "scan.pose_prior")
+    if model_simulator is None:
+        from sensors.simulate import Simulator
+
+        model_simulator = Simulator.from_scene(model)
+    mp = params.match
+    if prior is not None:
+        mp = replace(mp, prior_angle_rad=math.radians(params.prior_angle_deg), prior_dist_m=params.prior_dist_m)
+    t0 = time.perf_counter()
+    el = model_elements(model)
+    if pairings is None:
+        res = match(description, el, scan.sensor.pixel_pitch_rad, mp, prior)
+    else:
+        res = given_match(description, el, scan.sensor.pixel_pitch_rad, pairings, mp)
+    timing["matching"] = time.perf_counter() - t0
+    patch_ids = [description.patches[it.patch_index].id for it in res.items]
+
+    def failed(reason: str, **kw) -> PoseResult:
+        base = dict(ok=False, reason=reason, T_world_sensor=None, T_world_sensor_initial=None,
+                    cov_T_world_sensor=None, free_dof=6, confidence=0.0, pairings=(),
+                    n_hypotheses=len(res.hypotheses), n_nodes=res.n_nodes, predicted=None, timing_s=timing)
+        base.update(kw)
+        return PoseResult(**base)
+
+    if not res.hypotheses:
+        why = "no matchable patches" if not res.items else "no consistent hypothesis"
+        return failed(f"{why} ({len(res.items)} items, {res.n_nodes} nodes)")
+    # verification of the best hypotheses (fully constrained ones first)
+    t0 = time.perf_counter()
+    hyps = sorted(res.hypotheses, key=lambda h: (h.pose.free_dof > 0, -h.score))[: params.max_verify]
+    scored = []
+    for h in hyps:
+        T = h.pose.T_world_sensor
+        if h.pose.free_dof > 0 and prior is not None:
+            from recognition.matching import make_pair
+            from recognition.pose import estimate_pose
+
+            pairs = [make_pair(res.items[i], el, e) for i, e in h.pairs if e >= 0]
+            T = estimate_pose(pairs, T_init=prior, length_m=1.0).T_world_sensor
+        pred = predict(model_simulator, scan.sensor, T, params.verify.stride)
+        score, _ = agreement(description, scan, pred, params.verify)
+        scored.append((score, h, pred))
+    timing["verification"] = time.perf_counter() - t0
+    scored.sort(key=lambda x: (-x[0], x[1].pose.free_dof))
+    score0, best, pred0 = scored[0]
+    pose0: PoseEstimate = best.pose
+    T_init = pred0.T_world_sensor
+    pairs = {patch_ids[i]: (str(el.feature_id[e]) if e >= 0 else None) for i, e in best.pairs}
+    # ICP
+    T_final, cov, free = T_init, pose0.cov_T_world_sensor, pose0.free_dof
+    icp_note = ""
+    if params.use_icp:
+        t0 = time.perf_counter()
+        ir = icp_refine(scan, pred0, model, T_init, params.icp)
+        timing["icp"] = time.perf_counter() - t0
+        if ir.ok:
+            T_final, cov, free = ir.T_world_sensor, ir.cov_T_world_sensor, min(free, ir.free_dof)
+        else:
+            icp_note = f"; ICP not applied: {ir.reason}"
+    # prediction at the final pose (shared with change detection) and the final confidence
+    t0 = time.perf_counter()
+    pred = predict(model_simulator, scan.sensor, T_final, 1)
+    timing["predict"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    conf, _ = agreement(description, scan, pred, params.verify)
+    second = overlap_pairings(description, pred, {p for p, f in pairs.items() if f is not None},
+                              params.second_stage_fraction, params.verify, scan)
+    timing["verification"] += time.perf_counter() - t0
+    for pid, fid in second.items():
+        pairs[pid] = fid
+    pairings = tuple(sorted(pairs.items(), key=lambda kv: kv[0]))
+    ok = conf >= params.min_confidence and free == 0
+    reason = ""
+    if free > 0:
+        reason = f"pose underconstrained: {free} free DOF"
+    elif conf < params.min_confidence:
+        reason = f"low confidence {conf:.2f} < {params.min_confidence}"
+    return PoseResult(ok, reason + icp_note if not ok else "", T_final, T_init, cov, int(free), float(conf),
+                      pairings, len(res.hypotheses), res.n_nodes, pred, timing)

@@ -1,0 +1,728 @@
+"""Interpretation-tree matching of scene patches to a priori model features (the paper's section 4).
+
+Scene side: every patch labelled PLAN, CYL, CONE or SPH with a successful dedicated fit becomes a
+:class:`SceneItem` (sensor frame) with its uncertainties inflated to tolerances (DESIGN 6.3: fit covariances
+are overconfident, so ``k`` times the propagated sigma with a floor that grows as patches shrink). Model
+side: :func:`model_elements` turns the a priori :class:`scenes.model.SceneModel` into arrays of elements
+(world frame): plane faces and cylinder caps (PLAN), cylinder sides (CYL), cones (CONE), spheres (SPH).
+
+The search (:func:`match`) assigns each item a model element or a wildcard (spurious, changed or
+misclassified patch), depth first:
+
+* unary constraints: type, invariants within tolerance (radius, half-angle), a visible length or extent
+  no larger than the model's, an area no larger than the model face's; with a pose prior, the item moved
+  by the prior must lie near the candidate;
+* binary constraints against every earlier pair, tested for all candidates of a node at once on arrays:
+  angles between normals/axes, distances between parallel planes, from axes and centres to planes,
+  between axes, between centres;
+* items with the fewest candidates first; wildcards limited to ``max_wildcard_fraction`` of the items
+  plus ``extra_wildcards``; a node budget;
+* as soon as the pairs constrain all 6 DOF, the pose is solved in closed form (:mod:`recognition.pose`)
+  and every remaining item is tested against it (pose consistency and overlap with the element's
+  extent), taking its best consistent element or a wildcard without further branching: a leaf is a
+  *hypothesis*. Leaves that never reach 6 DOF are kept as underconstrained hypotheses.
+
+Hypotheses are deduplicated by pose and ranked by the summed ``log(pixels)`` of their matched items; the
+caller verifies them (:mod:`recognition.verify`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from recognition.describe import SceneDescription
+from recognition.pose import AxisPair, Pair, PlanePair, PointPair, PoseEstimate, estimate_pose, pose_hypotheses
+from recognition.primitives import ConeFit, CylinderFit, PlaneFit, SphereFit
+from scenes.features import Cone, Cylinder, Plane, Sphere
+from scenes.model import SceneModel
+
+__all__ = [
+    "MatchParams",
+    "ModelElements",
+    "SceneItem",
+    "Hypothesis",
+    "MatchResult",
+    "model_elements",
+    "scene_items",
+    "make_pair",
+    "match",
+    "pose_consistency",
+]
+
+KINDS = ("PLAN", "CYL", "CONE", "SPH")
+_GEOM = {"PLAN": 0, "CYL": 1, "CONE": 1, "SPH": 2}  # 0 plane, 1 line, 2 point
+_DIMS = {"PLAN": 3, "CYL": 4, "CONE": 5, "SPH": 3}  # constraints a pair gives (at most)
+
+
+@dataclass(frozen=True)
+class MatchParams:
+    """Tolerances and limits of the interpretation tree.
+
+    Attributes
+    ----------
+    min_pixels : patches smaller than this are not matched in the first stage.
+    max_items : at most this many items (largest first) enter the tree.
+    k_sigma : tolerance = ``k_sigma`` x the propagated sigma, combined with the floors below.
+    angle_floor_rad : floor of the angle tolerance for a large patch (radians).
+    angle_floor_px_rad : floor term growing as patches shrink: ``angle_floor_px_rad * sqrt(1000 / n_px)``.
+    dist_floor_m, dist_floor_rel : floor of distance tolerances, ``dist_floor_m + dist_floor_rel * range``.
+    radius_rel_tol : relative floor of the radius tolerance.
+    half_angle_tol_rad : floor of the cone half-angle tolerance.
+    length_slack : visible lengths/extents may exceed the model's by this factor (segmentation bleed).
+    max_wildcard_fraction, extra_wildcards : at most ``fraction * n_items + extra`` wildcards.
+    max_nodes : node budget of the search.
+    max_hypotheses : at most this many hypotheses are returned (best score first).
+    bound_ratio : branch and bound: a branch whose best possible score (all items not yet wildcarded
+        matched) is below ``bound_ratio`` x the best fully constrained leaf so far is pruned.
+    pose_chi2_factor : a pose fit is accepted when its whitened cost <= factor x residual count (+ 10).
+    length_m : characteristic length (m) for the free-DOF test; 0 = the median range of the items.
+    max_free_sigma : a direction with a larger sigma (rad, or ``length_m`` units) counts as free.
+    prior_angle_rad, prior_dist_m : tolerances of the unary test against a pose prior (None: no prior test).
+    """
+
+    min_pixels: int = 150
+    max_items: int = 30
+    k_sigma: float = 3.0
+    angle_floor_rad: float = math.radians(1.0)
+    angle_floor_px_rad: float = math.radians(1.5)
+    dist_floor_m: float = 0.002
+    dist_floor_rel: float = 0.004
+    radius_rel_tol: float = 0.08
+    half_angle_tol_rad: float = math.radians(3.0)
+    length_slack: float = 1.15
+    max_wildcard_fraction: float = 0.4
+    extra_wildcards: int = 2
+    max_nodes: int = 2000
+    max_hypotheses: int = 12
+    bound_ratio: float = 0.7
+    pose_chi2_factor: float = 9.0
+    length_m: float = 0.0
+    max_free_sigma: float = 0.1
+    prior_angle_rad: float | None = None
+    prior_dist_m: float | None = None
+
+    def __post_init__(self):
+        for name in ("k_sigma", "dist_floor_rel", "radius_rel_tol", "length_slack", "pose_chi2_factor",
+                     "max_free_sigma"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("min_pixels", "max_items", "max_nodes", "max_hypotheses"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not 0 <= self.max_wildcard_fraction <= 1:
+            raise ValueError(f"max_wildcard_fraction must be in [0, 1], got {self.max_wildcard_fraction}")
+        if self.extra_wildcards < 0 or self.length_m < 0:
+            raise ValueError("extra_wildcards and length_m must be >= 0")
+
+
+# ---------------------------------------------------------------------------------------------------------
+# model side
+
+
+@dataclass(frozen=True)
+class ModelElements:
+    """Matchable model surfaces as arrays (world frame, metres, radians).
+
+    Attributes
+    ----------
+    kind : ndarray of shape (E,) of str, PLAN/CYL/CONE/SPH.
+    feature_id, part : ndarray of shape (E,) of str.
+    direction : ndarray of shape (E, 3), outward plane normal or axis (cone: from the apex); zeros for spheres.
+    position : ndarray of shape (E, 3), plane/cap centre, axis segment centre, cone apex, sphere centre.
+    radius : ndarray of shape (E,), cylinder/sphere radius, disc radius of a cap; NaN otherwise.
+    half_angle : ndarray of shape (E,), cone half-angle; NaN otherwise.
+    length : ndarray of shape (E,), axis length (cylinder, cone frustum); NaN otherwise.
+    start : ndarray of shape (E,), cone start distance from the apex (0 for cylinders: centred segment).
+    u_axis : ndarray of shape (E, 3), in-plane axis of rectangles (NaN for discs).
+    half_size : ndarray of shape (E, 2), rectangle half sizes (disc: radius, radius).
+    area : ndarray of shape (E,), m².
+    diag : ndarray of shape (E,), largest in-plane extent of a plane element (metres).
+    """
+
+    kind: np.ndarray
+    feature_id: np.ndarray
+    part: np.ndarray
+    direction: np.ndarray
+    position: np.ndarray
+    radius: np.ndarray
+    half_angle: np.ndarray
+    length: np.ndarray
+    start: np.ndarray
+    u_axis: np.ndarray
+    half_size: np.ndarray
+    area: np.ndarray
+    diag: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.kind)
+
+    def of_kind(self, kind: str) -> np.ndarray:
+        return np.flatnonzero(self.kind == kind)
+
+
+def model_elements(model: SceneModel) -> ModelElements:
+    """The a priori model's matchable elements (tori are left to the second, proximity stage)."""
+    rows: list[dict] = []
+    nan3 = np.full(3, np.nan)
+    for f in model.features:
+        if isinstance(f, Plane):
+            hu, hv = f.half_size
+            rows.append(dict(kind="PLAN", fid=f.id, part="face", d=f.normal, p=f.centre, r=np.nan, ha=np.nan,
+                             L=np.nan, s=0.0, u=f.u_axis, hs=(hu, hv), area=4 * hu * hv,
+                             diag=2 * math.hypot(hu, hv)))
+        elif isinstance(f, Cylinder):
+            rows.append(dict(kind="CYL", fid=f.id, part="side", d=f.axis, p=f.centre, r=f.radius, ha=np.nan,
+                             L=f.length, s=0.0, u=nan3, hs=(np.nan, np.nan), area=f.area(), diag=np.nan))
+            for sign, part in ((-1.0, "cap_start"), (1.0, "cap_end")):
+                rows.append(dict(kind="PLAN", fid=f.id, part=part, d=sign * f.axis,
+                                 p=f.centre + sign * 0.5 * f.length * f.axis, r=f.radius, ha=np.nan, L=np.nan,
+                                 s=0.0, u=nan3, hs=(f.radius, f.radius), area=math.pi * f.radius**2,
+                                 diag=2 * f.radius))
+        elif isinstance(f, Cone):
+            rows.append(dict(kind="CONE", fid=f.id, part="side", d=f.axis, p=f.apex, r=np.nan, ha=f.half_angle,
+                             L=f.end - f.start, s=f.start, u=nan3, hs=(np.nan, np.nan), area=f.area(),
+                             diag=np.nan))
+        elif isinstance(f, Sphere):
+            rows.append(dict(kind="SPH", fid=f.id, part="surface", d=np.zeros(3), p=f.centre, r=f.radius,
+                             ha=np.nan, L=np.nan, s=0.0, u=nan3, hs=(np.nan, np.nan), area=f.area(),
+                             diag=np.nan))
+
+    def col(key, dtype=np.float64):
+        return np.array([r[key] for r in rows], dtype=dtype)
+
+    if not rows:
+        z = np.zeros(0)
+        return ModelElements(z.astype(str), z.astype(str), z.astype(str), np.zeros((0, 3)), np.zeros((0, 3)), z,
+                             z, z, z, np.zeros((0, 3)), np.zeros((0, 2)), z, z)
+    return ModelElements(col("kind", object).astype(str), col("fid", object).astype(str),
+                         col("part", object).astype(str), col("d").reshape(-1, 3), col("p").reshape(-1, 3),
+                         col("r"), col("ha"), col("L"), col("s"), col("u").reshape(-1, 3),
+                         col("hs").reshape(-1, 2), col("area"), col("diag"))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# scene side
+
+
+@dataclass(frozen=True)
+class SceneItem:
+    """A matchable scene patch (sensor frame), with tolerances.
+
+    Attributes
+    ----------
+    patch_index : index into ``description.patches``; ``patch_id`` its id.
+    kind : PLAN/CYL/CONE/SPH.
+    direction : ndarray of shape (3,), plane normal facing the sensor, axis (cone: from the apex); zeros
+        for spheres.
+    position : ndarray of shape (3,), plane centroid, axis point nearest the data centroid, sphere centre.
+    n_pixels : int; weight : ``log(n_pixels)``.
+    radius, radius_tol : metres (cylinder, sphere; cone: radius at ``position``); NaN when not applicable.
+    half_angle, half_angle_tol : radians (cone).
+    length : visible extent along the axis (cylinder, cone) or largest in-plane extent (plane), metres.
+    area : visible area estimate (plane), m².
+    sigma_angle : per-component direction sigma used by the pose (radians, inflated).
+    sigma_pos : per-component position sigma used by the pose (metres, inflated).
+    angle_tol, dist_tol : tolerances of the tests (radians, metres).
+    range_m : distance of the item from the sensor (metres).
+    """
+
+    patch_index: int
+    patch_id: int
+    kind: str
+    direction: np.ndarray
+    position: np.ndarray
+    n_pixels: int
+    weight: float
+    radius: float
+    radius_tol: float
+    half_angle: float
+    half_angle_tol: float
+    length: float
+    area: float
+    sigma_angle: float
+    sigma_pos: float
+    angle_tol: float
+    dist_tol: float
+    range_m: float
+
+
+def scene_items(description: SceneDescription, pixel_pitch_rad: float, params: MatchParams = MatchParams()
+                ) -> list[SceneItem]:
+    """Matchable items from the description's PLAN/CYL/CONE/SPH patches with a successful fit, largest
+    first (at most ``params.max_items``)."""
+    out: list[SceneItem] = []
+    patches = sorted(range(len(description.patches)), key=lambda i: -description.patches[i].n_pixels)
+    for i in patches:
+        p = description.patches[i]
+        fit = p.classification.primitive
+        if p.label not in KINDS or fit is None or not getattr(fit, "ok", False) or p.n_pixels < params.min_pixels:
+            continue
+        item = _item(i, p, fit, pixel_pitch_rad, params)
+        if item is not None:
+            out.append(item)
+        if len(out) >= params.max_items:
+            break
+    return out
+
+
+def _item(index, patch, fit, pitch, params: MatchParams) -> SceneItem | None:
+    pts = np.asarray(patch.points, dtype=np.float64)
+    n = len(pts)
+    centroid = pts.mean(axis=0)
+    rng_m = float(np.linalg.norm(centroid))
+    k = params.k_sigma
+    floor_a = params.angle_floor_rad + params.angle_floor_px_rad * math.sqrt(1000.0 / max(n, 1))
+    floor_d = params.dist_floor_m + params.dist_floor_rel * rng_m
+    nan = float("nan")
+    if patch.label == "PLAN" and isinstance(fit, PlaneFit):
+        nv = np.asarray(fit.normal, dtype=np.float64)
+        if nv @ centroid > 0:
+            nv = -nv
+        # offset sigma at the centroid (the tilt is about the weighted centroid: nearly uncorrelated)
+        C = np.asarray(fit.cov)
+        var_c = C[3, 3] - 2 * centroid @ C[:3, 3] + centroid @ C[:3, :3] @ centroid
+        s_off = math.sqrt(max(var_c, 0.0)) if np.isfinite(var_c) else fit.offset_sigma
+        s_ang = fit.normal_sigma_rad / math.sqrt(2)
+        d = pts - centroid
+        inplane = d - np.outer(d @ nv, nv)
+        ev, evec = np.linalg.eigh(inplane.T @ inplane)
+        proj = inplane @ evec[:, 2]
+        extent = float(proj.max() - proj.min())
+        rr = np.linalg.norm(pts, axis=1)
+        cos_i = np.abs(pts @ nv) / np.maximum(rr, 1e-12)
+        area = float(np.sum((rr * pitch) ** 2 / np.maximum(cos_i, 0.2)))
+        return SceneItem(index, patch.id, "PLAN", nv, centroid, n, math.log(n), nan, nan, nan, nan, extent, area,
+                         max(s_ang, floor_a / k), max(s_off, floor_d / k), k * s_ang + floor_a,
+                         k * s_off + floor_d, rng_m)
+    if patch.label == "CYL" and isinstance(fit, CylinderFit):
+        C = np.asarray(fit.cov)
+        s_pos = math.sqrt(max(np.trace(C[:3, :3]) / 2.0, 0.0)) if np.all(np.isfinite(C[:3, :3])) else floor_d
+        s_ang = fit.axis_sigma_rad / math.sqrt(2)
+        return SceneItem(index, patch.id, "CYL", np.asarray(fit.axis, float), np.asarray(fit.point, float), n,
+                         math.log(n), fit.radius, k * fit.radius_sigma + params.radius_rel_tol * fit.radius,
+                         nan, nan, fit.length, nan, max(s_ang, floor_a / k), max(s_pos, floor_d / k),
+                         k * s_ang + floor_a, k * s_pos + floor_d + params.radius_rel_tol * fit.radius, rng_m)
+    if patch.label == "CONE" and isinstance(fit, ConeFit):
+        C = np.asarray(fit.cov)
+        s_pos = math.sqrt(max(np.trace(C[:3, :3]) / 2.0, 0.0)) if np.all(np.isfinite(C[:3, :3])) else floor_d
+        s_ang = fit.axis_sigma_rad / math.sqrt(2)
+        return SceneItem(index, patch.id, "CONE", np.asarray(fit.axis, float), np.asarray(fit.point, float), n,
+                         math.log(n), fit.radius_at_point,
+                         k * math.sqrt(max(C[6, 6], 0.0)) + params.radius_rel_tol * fit.radius_at_point,
+                         fit.half_angle, k * fit.half_angle_sigma + params.half_angle_tol_rad, fit.length, nan,
+                         max(s_ang, floor_a / k), max(s_pos, floor_d / k), k * s_ang + floor_a,
+                         k * s_pos + floor_d + params.radius_rel_tol * fit.radius_at_point, rng_m)
+    if patch.label == "SPH" and isinstance(fit, SphereFit):
+        C = np.asarray(fit.cov)
+        s_pos = math.sqrt(max(np.trace(C[:3, :3]) / 3.0, 0.0)) if np.all(np.isfinite(C[:3, :3])) else floor_d
+        return SceneItem(index, patch.id, "SPH", np.zeros(3), np.asarray(fit.centre, float), n, math.log(n),
+                         fit.radius, k * fit.radius_sigma + params.radius_rel_tol * fit.radius, nan, nan, nan, nan,
+                         floor_a / k, max(s_pos, floor_d / k), floor_a,
+                         k * s_pos + floor_d + params.radius_rel_tol * fit.radius, rng_m)
+    return None
+
+
+# ---------------------------------------------------------------------------------------------------------
+# constraints
+
+
+def unary_candidates(item: SceneItem, el: ModelElements, params: MatchParams,
+                     prior: np.ndarray | None = None) -> np.ndarray:
+    """Indices of the elements that pass the unary tests for ``item`` (and the pose prior test, if given)."""
+    idx = el.of_kind(item.kind)
+    if len(idx) == 0:
+        return idx
+    ok = np.ones(len(idx), dtype=bool)
+    slack = params.length_slack
+    if item.kind == "PLAN":
+        ok &= item.length <= slack * el.diag[idx] + item.dist_tol
+        ok &= item.area <= slack**2 * el.area[idx] + item.length * item.dist_tol
+    elif item.kind in ("CYL", "SPH"):
+        ok &= np.abs(el.radius[idx] - item.radius) <= item.radius_tol
+        if item.kind == "CYL":
+            ok &= item.length <= slack * el.length[idx] + item.dist_tol
+    elif item.kind == "CONE":
+        ok &= np.abs(el.half_angle[idx] - item.half_angle) <= item.half_angle_tol
+        ok &= item.length <= slack * el.length[idx] + item.dist_tol
+        # the fitted radius must occur within the frustum
+        h = item.radius / np.tan(np.maximum(el.half_angle[idx], 1e-6))
+        ok &= (h >= el.start[idx] - item.dist_tol / np.maximum(np.tan(el.half_angle[idx]), 1e-3) - item.length)
+        ok &= (h <= el.start[idx] + el.length[idx] + item.length
+               + item.dist_tol / np.maximum(np.tan(el.half_angle[idx]), 1e-3))
+    idx = idx[ok]
+    if prior is not None and len(idx) and params.prior_angle_rad is not None and params.prior_dist_m is not None:
+        res = pose_consistency(item, el, idx, prior, params.prior_angle_rad + item.angle_tol,
+                               params.prior_dist_m + item.range_m * params.prior_angle_rad + item.dist_tol)
+        idx = idx[np.isfinite(res)]
+    return idx
+
+
+def _line_distance(p1, a1, p2, a2):
+    """Distance between lines (p1, a1) (3,) and (P2, A2) (N, 3); parallel lines use the perpendicular."""
+    c = np.cross(a1, a2)
+    cn = np.linalg.norm(c, axis=-1)
+    d = p2 - p1
+    par = cn < 1e-3
+    with np.errstate(invalid="ignore", divide="ignore"):
+        skew_d = np.abs(np.sum(d * c, axis=-1)) / np.where(par, 1.0, cn)
+    perp = d - np.outer(d @ a1, a1) if d.ndim == 2 else d - (d @ a1) * a1
+    par_d = np.linalg.norm(perp, axis=-1)
+    return np.where(par, par_d, skew_d)
+
+
+def _point_line_distance(p, a, q):
+    d = q - p
+    along = d @ a if d.ndim == 1 else np.sum(d * a, axis=-1)
+    perp = d - (along[..., None] * a if np.ndim(along) else along * a)
+    return np.linalg.norm(perp, axis=-1)
+
+
+def binary_ok(i_item: SceneItem, e_i: int, j_item: SceneItem, cand: np.ndarray, el: ModelElements) -> np.ndarray:
+    """Boolean mask over ``cand`` (element indices for ``j_item``) consistent with the pair
+    ``(i_item, e_i)``: angle between directions, and a distance measure (all vectorised over ``cand``)."""
+    gi, gj = _GEOM[i_item.kind], _GEOM[j_item.kind]
+    ok = np.ones(len(cand), dtype=bool)
+    ang_tol = math.hypot(i_item.angle_tol, j_item.angle_tol)
+    dm = el.direction[cand]
+    di_m = el.direction[e_i]
+    pi_m, pj_m = el.position[e_i], el.position[cand]
+    ds_i, ds_j = i_item.direction, j_item.direction
+    ps_i, ps_j = i_item.position, j_item.position
+    lever = float(np.linalg.norm(ps_j - ps_i))
+    dist_tol = math.hypot(i_item.dist_tol, j_item.dist_tol) + lever * ang_tol
+    if gi < 2 and gj < 2:
+        cs = float(ds_i @ ds_j)
+        cm = dm @ di_m
+        if gi == 0 and gj == 0:  # signed: plane normals both face the sensor / outward
+            ang_s, ang_m = math.acos(np.clip(cs, -1, 1)), np.arccos(np.clip(cm, -1, 1))
+        else:
+            ang_s, ang_m = math.acos(min(abs(cs), 1.0)), np.arccos(np.clip(np.abs(cm), 0, 1))
+        ok &= np.abs(ang_m - ang_s) <= ang_tol
+    # distances
+    if gi == 0 and gj == 0:
+        par_m = np.abs(dm @ di_m) > math.cos(math.radians(2.0))
+        s_d = float(ds_i @ (ps_j - ps_i))
+        m_d = (pj_m - pi_m) @ di_m
+        ok &= ~par_m | (np.abs(m_d - s_d) <= dist_tol)
+    elif {gi, gj} == {0, 1} or {gi, gj} == {0, 2}:
+        if gi == 0:
+            n_s, q_s, q_sp = ds_i, ps_i, ps_j
+            n_m, q_m, q_mp = np.broadcast_to(di_m, dm.shape), np.broadcast_to(pi_m, pj_m.shape), pj_m
+            line_dir_m = dm
+        else:
+            n_s, q_s, q_sp = ds_j, ps_j, ps_i
+            n_m, q_m, q_mp = dm, pj_m, np.broadcast_to(pi_m, pj_m.shape)
+            line_dir_m = np.broadcast_to(di_m, dm.shape)
+        s_d = float(n_s @ (q_sp - q_s))
+        m_d = np.sum(n_m * (q_mp - q_m), axis=1)
+        if 1 in (gi, gj):
+            applies = np.abs(np.sum(n_m * line_dir_m, axis=1)) < math.sin(math.radians(2.0))
+        else:
+            applies = np.ones(len(cand), dtype=bool)
+        ok &= ~applies | (np.abs(m_d - s_d) <= dist_tol)
+    elif gi == 1 and gj == 1:
+        s_d = float(_line_distance(ps_i, ds_i, ps_j[None, :], ds_j[None, :])[0])
+        m_d = _line_distance(pi_m, di_m, pj_m, dm)
+        ok &= np.abs(m_d - s_d) <= dist_tol
+    elif {gi, gj} == {1, 2}:
+        if gi == 1:
+            s_d = float(_point_line_distance(ps_i, ds_i, ps_j))
+            m_d = _point_line_distance(pi_m, di_m, pj_m)
+        else:
+            s_d = float(_point_line_distance(ps_j, ds_j, ps_i))
+            m_d = np.linalg.norm(np.cross(pi_m - pj_m, dm), axis=1)
+        ok &= np.abs(m_d - s_d) <= dist_tol
+    else:  # point-point
+        s_d = lever
+        m_d = np.linalg.norm(pj_m - pi_m, axis=1)
+        ok &= np.abs(m_d - s_d) <= dist_tol
+    return ok
+
+
+def pose_consistency(item: SceneItem, el: ModelElements, cand: np.ndarray, T: np.ndarray, angle_tol: float,
+                     dist_tol: float) -> np.ndarray:
+    """Normalised misfit (N,) of ``item`` moved by ``T_world_sensor`` against elements ``cand``; ``inf``
+    where it fails (direction, position across, extent along/in-plane).
+
+    The misfit is ``max(angle / angle_tol, distance / dist_tol)`` (smaller is better)."""
+    R, t = T[:3, :3], T[:3, 3]
+    d_w = R @ item.direction
+    p_w = R @ item.position + t
+    dm = el.direction[cand]
+    pm = el.position[cand]
+    half_len = 0.5 * (item.length if np.isfinite(item.length) else 0.0)
+    if item.kind == "PLAN":
+        ang = np.arccos(np.clip(dm @ d_w, -1, 1))
+        dist = np.abs(np.sum(dm * (p_w - pm), axis=1))
+        w = p_w - pm
+        hs = el.half_size[cand]
+        u = el.u_axis[cand]
+        is_rect = np.isfinite(u[:, 0])
+        v = np.cross(dm, np.where(is_rect[:, None], u, 0.0))
+        eu = np.abs(np.sum(w * np.where(is_rect[:, None], u, 0.0), axis=1)) - hs[:, 0]
+        ev = np.abs(np.sum(w * v, axis=1)) - hs[:, 1]
+        rad = np.linalg.norm(w - np.sum(w * dm, axis=1)[:, None] * dm, axis=1) - hs[:, 0]
+        excess = np.where(is_rect, np.maximum(eu, ev), rad)
+        inside = excess <= half_len + dist_tol
+    elif item.kind in ("CYL", "CONE"):
+        c = np.abs(dm @ d_w) if item.kind == "CYL" else dm @ d_w
+        ang = np.arccos(np.clip(c, -1, 1))
+        w = p_w - pm
+        along = np.sum(w * dm, axis=1)
+        dist = np.linalg.norm(w - along[:, None] * dm, axis=1)
+        if item.kind == "CYL":
+            excess = np.abs(along) - 0.5 * el.length[cand]
+            inside = excess <= half_len + dist_tol
+            rerr = np.zeros(len(cand))
+        else:
+            lo, hi = el.start[cand], el.start[cand] + el.length[cand]
+            inside = (along >= lo - half_len - dist_tol) & (along <= hi + half_len + dist_tol)
+            # radius at the fitted point vs the model's radius there
+            rerr = np.abs(along * np.tan(el.half_angle[cand]) - item.radius)
+            dist = np.maximum(dist, rerr)
+    else:
+        ang = np.zeros(len(cand))
+        dist = np.linalg.norm(p_w - pm, axis=1)
+        inside = np.ones(len(cand), dtype=bool)
+    mis = np.maximum(ang / angle_tol, dist / dist_tol)
+    return np.where((mis <= 1.0) & inside, mis, np.inf)
+
+
+def make_pair(item: SceneItem, el: ModelElements, e: int) -> Pair:
+    """The pose correspondence of ``item`` and element ``e``."""
+    if item.kind == "PLAN":
+        n_m = el.direction[e]
+        return PlanePair(item.direction, item.position, n_m, float(n_m @ el.position[e]), item.sigma_angle,
+                         item.sigma_pos)
+    if item.kind == "CYL":
+        return AxisPair(item.direction, item.position, el.direction[e], el.position[e], item.sigma_angle,
+                        item.sigma_pos, signed=False)
+    if item.kind == "CONE":
+        ta = math.tan(float(el.half_angle[e]))
+        along = item.radius / max(ta, 1e-6)
+        s_along = max(item.radius_tol / 3.0, item.sigma_pos) / max(ta, 1e-6)
+        return AxisPair(item.direction, item.position, el.direction[e], el.position[e], item.sigma_angle,
+                        item.sigma_pos, signed=True, along_m=along, sigma_along=s_along)
+    return PointPair(item.position, el.position[e], item.sigma_pos)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the search
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """A leaf of the tree.
+
+    Attributes
+    ----------
+    pairs : tuple of (item index, element index or -1 for a wildcard), one per item in the tree.
+    pose : the pose from all matched pairs.
+    score : summed ``log(pixels)`` of the matched items.
+    n_matched : int
+    """
+
+    pairs: tuple[tuple[int, int], ...]
+    pose: PoseEstimate
+    score: float
+    n_matched: int
+
+
+@dataclass(frozen=True)
+class MatchResult:
+    """Hypotheses (best score first), the items and elements they index, and search statistics."""
+
+    hypotheses: tuple[Hypothesis, ...]
+    items: tuple[SceneItem, ...]
+    elements: ModelElements
+    n_nodes: int
+    exhausted: bool
+    candidates: tuple[int, ...] = field(default=())
+
+
+class _Search:
+    def __init__(self, items, el, cands, params: MatchParams, length_m: float):
+        self.items, self.el, self.cands, self.p = items, el, cands, params
+        self.length_m = length_m
+        self.n_nodes = 0
+        self.leaves: list[Hypothesis] = []
+        self.max_wild = int(params.max_wildcard_fraction * len(items)) + params.extra_wildcards
+        self.total_weight = float(sum(it.weight for it in items))
+        self.best_score = 0.0
+        self._poses = np.zeros((64, 4, 4))
+        self._n_poses = 0
+        self.dedupe_angle = math.radians(2.0)
+        self.dedupe_dist = 0.02 * length_m
+        self.order = sorted(range(len(items)), key=lambda i: (len(cands[i]), -items[i].n_pixels))
+
+    def pose(self, assigned: list[tuple[int, int]], T_init=None) -> list[PoseEstimate]:
+        pairs = [make_pair(self.items[i], self.el, e) for i, e in assigned if e >= 0]
+        hyps = pose_hypotheses(pairs, length_m=self.length_m, max_sigma=self.p.max_free_sigma, T_init=T_init,
+                               iterations=1 if T_init is None else 3)
+        out = []
+        for h in hyps:
+            if h.ok and h.cost <= self.p.pose_chi2_factor * h.n_residuals + 10.0:
+                out.append(h)
+        return out
+
+    def run(self):
+        self._dfs(0, [], 0, 0.0)
+
+    def _dfs(self, depth: int, assigned: list[tuple[int, int]], n_wild: int, w_wild: float) -> None:
+        if self.n_nodes >= self.p.max_nodes:
+            return
+        if self.total_weight - w_wild < self.p.bound_ratio * self.best_score:
+            return  # branch and bound: cannot come near the best leaf any more
+        self.n_nodes += 1
+        if depth == len(self.order):
+            if any(e >= 0 for _, e in assigned):
+                for h in self.pose(assigned)[:2]:
+                    self._leaf(assigned, h)
+            return
+        i = self.order[depth]
+        item = self.items[i]
+        cand = self.cands[i]
+        for j, e in assigned:
+            if e < 0 or len(cand) == 0:
+                continue
+            cand = cand[binary_ok(self.items[j], e, item, cand, self.el)]
+        for e in cand:
+            if self.n_nodes >= self.p.max_nodes:
+                return
+            new = assigned + [(i, int(e))]
+            dims = sum(_DIMS[self.items[j].kind] for j, x in new if x >= 0)
+            if dims >= 6:
+                hyps = self.pose(new)
+                if not hyps:
+                    continue
+                fixed = [h for h in hyps if h.free_dof == 0]
+                if fixed:
+                    self.n_nodes += 1
+                    for h in fixed[:4]:
+                        self._extend(new, depth + 1, h, n_wild)
+                    continue
+            self._dfs(depth + 1, new, n_wild, w_wild)
+        if n_wild < self.max_wild:
+            self._dfs(depth + 1, assigned + [(i, -1)], n_wild + 1, w_wild + item.weight)
+
+    def _extend(self, assigned, depth, pose: PoseEstimate, n_wild: int) -> None:
+        """Greedy completion under a fixed pose: every remaining item takes its best consistent element."""
+        T = pose.T_world_sensor
+        if self._seen(T):
+            return
+        out = list(assigned)
+        for i in self.order[depth:]:
+            item = self.items[i]
+            cand = self.cands[i]
+            if len(cand):
+                mis = pose_consistency(item, self.el, cand, T, 2.0 * item.angle_tol, 2.0 * item.dist_tol)
+                b = int(np.argmin(mis))
+                if np.isfinite(mis[b]):
+                    out.append((i, int(cand[b])))
+                    continue
+            out.append((i, -1))
+        n_w = sum(1 for _, e in out if e < 0)
+        if n_w > self.max_wild + len(self.order) - depth:
+            return
+        final = self.pose(out, T_init=T)
+        if not final:
+            # the extension broke the fit: keep the seed pairs only
+            out = list(assigned) + [(i, -1) for i in self.order[depth:]]
+            final = [pose]
+        self._leaf(out, final[0])
+
+    def _seen(self, T: np.ndarray) -> bool:
+        """Whether a leaf with (nearly) the same pose exists (all leaves tested at once)."""
+        if self._n_poses == 0:
+            return False
+        P = self._poses[: self._n_poses]
+        cos = (np.einsum("nij,ij->n", P[:, :3, :3], T[:3, :3]) - 1.0) / 2.0
+        close = (cos > math.cos(self.dedupe_angle)) & (
+            np.linalg.norm(P[:, :3, 3] - T[:3, 3], axis=1) < self.dedupe_dist)
+        return bool(close.any())
+
+    def _leaf(self, assigned, pose: PoseEstimate) -> None:
+        matched = [i for i, e in assigned if e >= 0]
+        score = float(sum(self.items[i].weight for i in matched))
+        self.leaves.append(Hypothesis(tuple(sorted(assigned)), pose, score, len(matched)))
+        if self._n_poses == len(self._poses):
+            self._poses = np.concatenate([self._poses, np.zeros_like(self._poses)])
+        self._poses[self._n_poses] = pose.T_world_sensor
+        self._n_poses += 1
+        if pose.free_dof == 0:
+            self.best_score = max(self.best_score, score)
+
+
+def _same_pose(a: np.ndarray, b: np.ndarray, angle_rad: float, dist_m: float) -> bool:
+    dR = a[:3, :3].T @ b[:3, :3]
+    ang = math.acos(np.clip((np.trace(dR) - 1) / 2, -1, 1))
+    return ang < angle_rad and float(np.linalg.norm(a[:3, 3] - b[:3, 3])) < dist_m
+
+
+def match(description: SceneDescription, model: SceneModel | ModelElements, pixel_pitch_rad: float,
+          params: MatchParams = MatchParams(), prior: np.ndarray | None = None) -> MatchResult:
+    """Interpretation-tree search (module docstring).
+
+    Parameters
+    ----------
+    description : the scene description (patches in the sensor frame).
+    model : the a priori model, or its :func:`model_elements` (precomputed once per model).
+    pixel_pitch_rad : the sensor's angular pixel size (for patch areas).
+    params : tolerances and limits.
+    prior : optional ``T_world_sensor`` (4, 4) prior restricting the candidates (with
+        ``params.prior_angle_rad`` and ``params.prior_dist_m``).
+
+    Returns
+    -------
+    MatchResult with its hypotheses sorted by score (then fewer free DOF, then lower pose cost).
+    """
+    el = model if isinstance(model, ModelElements) else model_elements(model)
+    items = scene_items(description, pixel_pitch_rad, params)
+    cands = [unary_candidates(it, el, params, prior) for it in items]
+    keep = [k for k in range(len(items)) if len(cands[k])]
+    items = [items[k] for k in keep]
+    cands = [cands[k] for k in keep]
+    if not items:
+        return MatchResult((), tuple(items), el, 0, True, ())
+    length_m = params.length_m or float(np.median([it.range_m for it in items]))
+    s = _Search(items, el, cands, params, length_m)
+    s.run()
+    leaves = sorted(s.leaves, key=lambda h: (-h.score, h.pose.free_dof, h.pose.cost))
+    uniq: list[Hypothesis] = []
+    for h in leaves:
+        T = h.pose.T_world_sensor
+        if any(_same_pose(T, u.pose.T_world_sensor, math.radians(2.0), 0.02 * length_m) for u in uniq):
+            continue
+        uniq.append(h)
+        if len(uniq) >= params.max_hypotheses:
+            break
+    return MatchResult(tuple(uniq), tuple(items), el, s.n_nodes, s.n_nodes < params.max_nodes,
+                       tuple(len(c) for c in cands))
+
+
+def given_match(description: SceneDescription, model: SceneModel | ModelElements, pixel_pitch_rad: float,
+                pairings: dict[int, tuple[str, str]], params: MatchParams = MatchParams()) -> MatchResult:
+    """The match result of given correspondences (``{patch id: (feature id, part)}``) instead of a search:
+    one hypothesis whose pose is computed from them in closed form. Used to isolate the pose stage from
+    matching (the harness's ``pairing`` oracle); patches not in ``pairings`` are wildcards."""
+    el = model if isinstance(model, ModelElements) else model_elements(model)
+    items = tuple(scene_items(description, pixel_pitch_rad, params))
+    index = {(str(f), str(p)): e for e, (f, p) in enumerate(zip(el.feature_id, el.part, strict=True))}
+    pairs_idx = []
+    for i, it in enumerate(items):
+        e = index.get(pairings.get(it.patch_id, ("", "")), -1)
+        if e >= 0 and el.kind[e] != it.kind:
+            e = -1  # a pairing the item's kind cannot express (e.g. a patch labelled CYL on a plane)
+        pairs_idx.append((i, e))
+    pairs = [make_pair(items[i], el, e) for i, e in pairs_idx if e >= 0]
+    hyps: tuple[Hypothesis, ...] = ()
+    if pairs:
+        length_m = params.length_m or float(np.median([it.range_m for it in items]))
+        pose = estimate_pose(pairs, length_m=length_m, max_sigma=params.max_free_sigma)
+        if pose.ok:
+            score = float(sum(items[i].weight for i, e in pairs_idx if e >= 0))
+            hyps = (Hypothesis(tuple(pairs_idx), pose, score, len(pairs)),)
+    return MatchResult(hyps, items, el, 0, True)
