@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from evaluation.attribution import attribute, largest_losses
 from reports import figures
 from reports.colours import CHANGE_COLOURS, CHANGE_LABELS, CLASS_COLOURS, CLASSES
 from reports.document import Cell, Code, Document, GalleryTrial, Grid, Image, Note, Para, Section, Table
@@ -657,6 +658,20 @@ def oracles_section(run: RunData) -> Section | None:
         Table(("metric", "better", "core (end to end)", *[f"oracle: {o}" for o in oracles]), tuple(rows),
               id="oracles"),
     ]
+    attribution = attribute(run.summary)
+    if attribution:
+        names = list(oracles)
+        att_rows = [(Cell(r.figure), value_cell(r.end_to_end, 3, ""),
+                     *[Cell("-" if r.cost.get(o) is None else
+                            f"{r.cost[o]:+.3g}" + ("" if r.share.get(o) is None else f" ({100 * r.share[o]:.0f} %)"))
+                       for o in names]) for r in attribution]
+        blocks += [
+            Para("Error attribution: what each stage costs each downstream figure (the figure with that stage's "
+                 "truth minus end to end, in the better direction), and its share of the end-to-end gap to the "
+                 "ideal value."),
+            Table(("figure", "end to end", *[f"cost of {o}" for o in names]), tuple(att_rows), id="attribution"),
+            *[Para(sentence) for sentence in largest_losses(attribution).values()],
+        ]
     return Section("oracles", "Stage oracles", blocks)
 
 
