@@ -21,9 +21,10 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy import ndimage
 
 from recognition.describe import SceneDescription
 from recognition.predict import ModelPredictor
@@ -35,7 +36,6 @@ from sensors.range_image import Scan
 
 LABELS = ("unchanged", "moved", "missing", "altered", "new", "unobserved")
 PIXEL_NONE, PIXEL_EXPLAINED, PIXEL_OTHER_SURFACE, PIXEL_FRONT, PIXEL_BEHIND = 0, 1, 2, 3, 4
-_KIND = {Plane: "PLAN", Cylinder: "CYL", Sphere: "SPH", Cone: "CONE", Torus: "OTH"}
 
 
 @dataclass(frozen=True)
@@ -310,8 +310,9 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
                     best, verdict = dist, FeatureChange("moved", dist, (p.id,), prev.found, prev.revealed,
                                                         prev.occluded, "found in the loose neighbourhood")
         if verdict is not None:
-            results[fid] = verdict
-            claimed.update(verdict.patches)
+            fragments = _fragments_of(verdict.patches[0], description, patch_prims, claimed, T, allowance, f)
+            results[fid] = replace(verdict, patches=verdict.patches + fragments)
+            claimed.update(results[fid].patches)
         elif prev.found + prev.revealed >= params.min_pixels:
             results[fid] = FeatureChange("missing", None, (), prev.found, prev.revealed, prev.occluded,
                                          "predicted visible, background revealed")
@@ -320,8 +321,10 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
         results.setdefault(f.id, FeatureChange("unobserved", reason="not predicted visible"))
     _propagate_rigid_moves(model, results)
 
-    new = tuple(p.id for p in description.patches if p.id not in claimed and p.n_pixels >= params.new_min_pixels
-                and patch_unexplained[p.id] >= params.new_unexplained_fraction)
+    candidates = [p for p in description.patches if p.id not in claimed
+                  and patch_unexplained[p.id] >= params.new_unexplained_fraction]
+    new_pixels = _new_regions(candidates, scan.range.shape, params.new_min_pixels)
+    new = tuple(new_pixels)
     objects = {o.id: object_label([results[f.id] for f in o.features]) for o in model.objects}
     label_map = np.full(scan.range.shape, -1, dtype=np.int8)
     lm = label_map.reshape(-1)
@@ -329,20 +332,82 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
         lab = results[fid].label
         if lab != "unobserved":
             lm[pix] = LABELS.index(lab)
-    for pid in new:
-        lm[description.patches[_patch_index(description, pid)].pixels] = LABELS.index("new")
+    for pix in new_pixels.values():
+        lm[pix] = LABELS.index("new")
     for res in results.values():
         if res.label == "moved":
             for pid in res.patches:
                 lm[description.patches[_patch_index(description, pid)].pixels] = LABELS.index("moved")
     timing["change"] = time.perf_counter() - t0
-    new_pixels = {pid: description.patches[_patch_index(description, pid)].pixels for pid in new}
     return ChangeResult(results, objects, new, pix_cls, label_map, new_pixels, timing)
 
 
+def _prim_distance(prim: dict, pts: np.ndarray) -> np.ndarray | None:
+    """Distance (N,) of world points to a fitted primitive's (unbounded) surface; None when unknown."""
+    if "point" in prim:  # cylinder
+        w = pts - prim["point"]
+        return np.abs(np.linalg.norm(w - np.outer(w @ prim["axis"], prim["axis"]), axis=1) - prim["radius"])
+    if "centre" in prim:
+        return np.abs(np.linalg.norm(pts - prim["centre"], axis=1) - prim["radius"])
+    if "centroid" in prim:
+        return np.abs((pts - prim["centroid"]) @ prim["normal"])
+    return None
+
+
+def _fragments_of(pid: int, description: SceneDescription, prims: dict, claimed: set[int], T: np.ndarray,
+                  allowance: np.ndarray, f: Feature) -> tuple[int, ...]:
+    """Other unclaimed patches lying on the surface fitted to patch ``pid`` (the same displaced or altered
+    feature split by the segmenter), within the feature's size of it."""
+    prim = prims.get(pid)
+    if prim is None:
+        return ()
+    anchor = description.patches[_patch_index(description, pid)]
+    centre = _patch_world(anchor, T).mean(axis=0)
+    reach = f.size()
+    out = []
+    for q in description.patches:
+        if q.id == pid or q.id in claimed or q.n_pixels < 10:
+            continue
+        pts = _patch_world(q, T)
+        if np.linalg.norm(pts.mean(axis=0) - centre) > reach:
+            continue
+        d = _prim_distance(prim, pts)
+        if d is not None and np.median(d - allowance.reshape(-1)[q.pixels]) <= 0:
+            out.append(q.id)
+    return tuple(out)
+
+
+def _new_regions(patches, shape: tuple[int, int], min_pixels: int, gap_px: int = 2) -> dict[int, np.ndarray]:
+    """Unexplained patches grouped into new regions: patches within ``gap_px`` of each other in the image
+    form one region (a new object split by the segmenter is one detection, not several). Keyed by the id
+    of each region's largest patch; regions smaller than ``min_pixels`` are dropped."""
+    if not patches:
+        return {}
+    mask = np.zeros(shape, dtype=bool)
+    for p in patches:
+        mask.flat[p.pixels] = True
+    grown = ndimage.binary_dilation(mask, iterations=gap_px)
+    components, _ = ndimage.label(grown)
+    regions: dict[int, list] = {}
+    for p in sorted(patches, key=lambda q: -q.n_pixels):
+        comp = int(components.flat[p.pixels[0]])
+        regions.setdefault(comp, []).append(p)
+    out = {}
+    for members in regions.values():
+        pix = np.concatenate([m.pixels for m in members])
+        if len(pix) >= min_pixels:
+            out[members[0].id] = np.sort(pix)
+    return out
+
+
+_COMPATIBLE = {Plane: ("PLAN",), Cylinder: ("CYL", "CONE"), Cone: ("CONE", "CYL"), Sphere: ("SPH",),
+               Torus: ("OTH",)}
+
+
 def _compatible(label: str, f: Feature) -> bool:
-    """A scene patch of this label may be the feature (an elbow is seen as OTH)."""
-    return label == _KIND[type(f)]
+    """A scene patch of this label may be the feature (an elbow is seen as OTH; a slender cone and a cylinder
+    are easily confused under noise)."""
+    return label in _COMPATIBLE[type(f)]
 
 
 def _patch_index(description: SceneDescription, pid: int) -> int:
