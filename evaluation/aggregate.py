@@ -41,9 +41,15 @@ def stats(values: Sequence[float]) -> dict[str, float] | None:
             "mean": float(v.mean())}
 
 
+def _mean(values: list[float | None]) -> float | None:
+    v = [x for x in values if x is not None]
+    return float(np.mean(v)) if v else None
+
+
 def aggregate_segmentation(trials: list[dict[str, Any]]) -> dict[str, Any]:
-    """Hoover rates averaged over images (DESIGN 7), and the tolerance sweep averaged likewise."""
-    out: dict[str, Any] = {k: float(np.mean([t[k] for t in trials])) for k in HOOVER_RATES}
+    """Hoover rates averaged over images (DESIGN 7), and the tolerance sweep averaged likewise; an image
+    with nothing to count for a rate (null) does not take part in that rate's mean."""
+    out: dict[str, Any] = {k: _mean([t[k] for t in trials]) for k in HOOVER_RATES}
     out["tolerance"] = trials[0]["tolerance"]
     out["min_truth_pixels"] = trials[0].get("min_truth_pixels", 0)
     out["n_images"] = len(trials)
@@ -51,7 +57,7 @@ def aggregate_segmentation(trials: list[dict[str, Any]]) -> dict[str, Any]:
     sweeps = [t["sweep"] for t in trials if t.get("sweep")]
     if sweeps:
         out["sweep"] = [{"tolerance": row["tolerance"],
-                         **{k: float(np.mean([s[i][k] for s in sweeps])) for k in HOOVER_RATES}}
+                         **{k: _mean([s[i][k] for s in sweeps]) for k in HOOVER_RATES}}
                         for i, row in enumerate(sweeps[0])]
     return out
 

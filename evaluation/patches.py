@@ -31,16 +31,22 @@ def segmentation_section(labels: np.ndarray, truth: ScanTruth, valid: np.ndarray
     """Hoover rates at T = 0.8 over truth regions of >= 200 pixels, plus the sweep over T in [0.51, 0.95]."""
     regions = truth_regions(truth, valid)
     score = hoover_score(labels, regions, TOLERANCE, min_truth_pixels=MIN_TRUTH_PIXELS)
-    out = {k: float(v) if isinstance(v, float | np.floating) else v for k, v in score.as_dict().items()}
+    # a rate with nothing to count (no truth region of 200 px, or no machine region) is null, not NaN
+    out = {k: (None if isinstance(v, float | np.floating) and not np.isfinite(v) else
+               float(v) if isinstance(v, float | np.floating) else v) for k, v in score.as_dict().items()}
     out["min_truth_pixels"] = MIN_TRUTH_PIXELS
     out["n_truth"] = int(score.n_truth)
     out["n_machine"] = int(score.n_machine)
-    out["sweep"] = [{"tolerance": float(t), **{k: float(getattr(s, k)) for k in
+    out["sweep"] = [{"tolerance": float(t), **{k: _finite(getattr(s, k)) for k in
                                                 ("correct_detection_rate", "over_rate", "under_rate", "missed_rate",
                                                  "noise_rate")}}
                     for t, s in zip(DEFAULT_SWEEP, hoover_sweep(labels, regions, DEFAULT_SWEEP,
                                                                  min_truth_pixels=MIN_TRUTH_PIXELS), strict=True)]
     return out
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
 
 
 def patch_truth(pixels: np.ndarray, surface_id_flat: np.ndarray) -> tuple[int, float]:

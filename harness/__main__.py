@@ -1,5 +1,9 @@
 import sys
 
-from harness.cli import main
+try:
+    from harness.cli import main
+except KeyboardInterrupt:  # Ctrl-C while still importing: nothing was written yet
+    print("harness: interrupted", file=sys.stderr)
+    sys.exit(130)
 
 sys.exit(main())

@@ -1,8 +1,9 @@
 """The ``harness`` command line: ``harness <command> [options]``.
 
 Each module in :mod:`harness.commands` listed in :data:`COMMANDS` provides ``NAME``, ``HELP``,
-``add_arguments(parser)`` and ``run(args) -> int``. Configuration errors become one line on stderr
-and exit code 2 (no traceback).
+``add_arguments(parser)`` and ``run(args) -> int``. Configuration errors, a results directory locked by
+another run or holding another run become one line on stderr and exit code 2 (no traceback); an I/O
+error such as a full disk exits 1 with one line; Ctrl-C exits 130.
 """
 
 from __future__ import annotations
@@ -33,16 +34,25 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+    except KeyboardInterrupt:
+        print("harness: interrupted", file=sys.stderr)
+        return 130
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
+    from harness.store import RunLockedError
+
     try:
         return int(args._run(args) or 0)
-    except (ConfigError, ValueError, FileNotFoundError) as exc:
+    except (ConfigError, ValueError, FileNotFoundError, FileExistsError, RunLockedError) as exc:
         print(f"harness: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # e.g. a full disk: finished trials are kept, --resume completes the run
+        print(f"harness: error: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("harness: interrupted", file=sys.stderr)
         return 130

@@ -26,9 +26,32 @@ _CHILDREN_LOCK = threading.Lock()
 _FORK_LOCK = threading.Lock()
 
 
-def failed_record(spec: TrialSpec, reason: str, detail: str = "", elapsed: float | None = None) -> dict[str, Any]:
+def failed_record(spec: TrialSpec, reason: str, detail: str = "", elapsed: float | None = None,
+                  retryable: bool = False) -> dict[str, Any]:
+    """The record of a trial that did not finish. ``retryable``: the failure came from the machinery (a
+    process killed, a timeout, a lost Dask worker), not from the trial's own code and data, so ``--resume``
+    runs the trial again instead of keeping this record."""
     return {"schema": "harness.trial/1", "trial_id": spec.trial_id, "status": "failed", "reason": reason,
-            "detail": detail, "spec": spec.to_dict(), "timing_s": {"total": elapsed}, "methods": {}}
+            "detail": detail, "retryable": retryable, "spec": spec.to_dict(), "timing_s": {"total": elapsed},
+            "methods": {}}
+
+
+def _single_threaded() -> None:
+    """One thread per trial for BLAS and Open3D: results then do not depend on the executor (Dask workers
+    already limit their threads) nor on the machine's load (a parallel reduction sums in whatever order its
+    threads finish), and N trials on N cores do not oversubscribe them. The libraries are imported by the
+    parent before it forks (:func:`_import_numerics`), so the child only sets the limits."""
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1)
+    import open3d
+
+    open3d.utility.set_max_threads(1)
+
+
+def _import_numerics() -> None:
+    import open3d  # noqa: F401 - imported once here so that no trial child pays for it
+    import threadpoolctl  # noqa: F401
 
 
 def _child_record(spec: TrialSpec, plan: TrialPlan, prepared, artifacts_dir: str | None) -> dict[str, Any]:
@@ -53,6 +76,7 @@ def run_isolated(spec: TrialSpec, plan: TrialPlan, timeout_s: float, cache_dir: 
     """
     from harness.trial import prepare_scene
 
+    _import_numerics()
     t_prepare = time.perf_counter()
     try:
         prepared = prepare_scene(spec, Path(cache_dir) if cache_dir else None)
@@ -63,16 +87,24 @@ def run_isolated(spec: TrialSpec, plan: TrialPlan, timeout_s: float, cache_dir: 
     t0 = time.perf_counter()
     # pipe, fork and the parent's close of the write end happen under a lock: a sibling forked by another
     # thread in between would inherit this write end and hide the child's death (no EOF)
+    parent = os.getpid()
     with _FORK_LOCK:
         read_fd, write_fd = os.pipe()
         pid = os.fork()
         if pid != 0:
             os.close(write_fd)
+            try:  # also set here (the classic race): a kill of the group right after fork must find it
+                os.setpgid(pid, pid)
+            except (PermissionError, ProcessLookupError):
+                pass
     if pid == 0:  # the child: run, send, and leave without running the parent's exit handlers
         code = 0
         try:
             os.close(read_fd)
             signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides what Ctrl-C means
+            os.setpgid(0, 0)  # its own process group: a timeout or Ctrl-C kills whatever the trial started too
+            _die_with_parent(parent)  # ...and, outside the parent's group now, it must not outlive the parent
+            _single_threaded()
             # the prepared scene reaches the child through fork's copy of memory, never through a lock
             # that another thread of the parent might hold at the time of the fork
             data = pickle.dumps(_child_record(spec, plan, prepared, artifacts_dir))
@@ -102,7 +134,8 @@ def run_isolated(spec: TrialSpec, plan: TrialPlan, timeout_s: float, cache_dir: 
         elapsed = time.perf_counter() - t0
         if timed_out:
             _kill(pid)
-            return failed_record(spec, f"timed out after {timeout_s:g} s", elapsed=elapsed)
+            return failed_record(spec, f"timed out after {timeout_s:g} s", elapsed=elapsed, retryable=True)
+        _kill_group(pid)  # processes the trial left behind (before reaping the child: its group id stays ours)
         _, status = os.waitpid(pid, 0)
         if chunks:
             try:
@@ -117,19 +150,44 @@ def run_isolated(spec: TrialSpec, plan: TrialPlan, timeout_s: float, cache_dir: 
             how = f"killed by signal {os.WTERMSIG(status)}"
         else:
             how = f"exit code {os.WEXITSTATUS(status)}"
-        return failed_record(spec, f"worker process died ({how})", elapsed=elapsed)
+        return failed_record(spec, f"worker process died ({how})", elapsed=elapsed, retryable=True)
     finally:
         os.close(read_fd)
         with _CHILDREN_LOCK:
             _CHILDREN.discard(pid)
 
 
+def _die_with_parent(parent: int) -> None:
+    """In a trial child: be killed when the parent dies (Linux ``PR_SET_PDEATHSIG``; elsewhere a no-op), so a
+    runner killed outright (SIGKILL, OOM) leaves no trial running."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL, 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # the parent died before the call
+        os._exit(1)
+
+
 def _kill(pid: int) -> None:
+    """Kill a trial child and its process group (anything it started), and reap it."""
+    _kill_group(pid)
     try:
         os.kill(pid, signal.SIGKILL)
-        os.waitpid(pid, 0)
-    except (ProcessLookupError, ChildProcessError):
+    except ProcessLookupError:
         pass
+    try:
+        os.waitpid(pid, 0)
+    except ChildProcessError:
+        pass
+
+
+def _kill_group(pgid: int) -> None:
+    try:
+        os.killpg(pgid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass  # no process left in the group
 
 
 def kill_children() -> None:
@@ -137,6 +195,7 @@ def kill_children() -> None:
     with _CHILDREN_LOCK:
         pids = list(_CHILDREN)
     for pid in pids:
+        _kill_group(pid)
         try:
             os.kill(pid, signal.SIGKILL)
         except ProcessLookupError:
@@ -180,7 +239,7 @@ def run_dask(specs: list[TrialSpec], plan: TrialPlan, timeout_s: float, client, 
             try:
                 yield fut.result()
             except Exception as exc:  # noqa: BLE001 - a lost worker is a failed trial, not a failed run
-                yield failed_record(spec, f"dask worker failed: {type(exc).__name__}: {exc}")
+                yield failed_record(spec, f"dask worker failed: {type(exc).__name__}: {exc}", retryable=True)
     except BaseException:
         client.cancel(list(futures))
         raise

@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import sys
+import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
-from harness.execute import run_dask, run_local
+from harness.execute import failed_record, run_dask, run_local
 from harness.provenance import provenance
-from harness.store import RunDirectory, write_json_atomic
+from harness.store import RunDirectory, non_finite_paths, write_json_atomic
 from harness.suite import Suite, TrialSpec
 from harness.summary import summarise
 
@@ -99,20 +103,54 @@ def run_suite(suite: Suite, out: Path, options: RunOptions = RunOptions(), log: 
         progress = Progress(len(todo), log, options.progress)
         t0 = time.perf_counter()
         try:
+            by_id = {t.trial_id: t for t in todo}
             for record in _execute(todo, suite, options, workers, timeout, str(run_dir.cache_dir), artifacts):
                 record["config_hash"] = config_hash
-                run_dir.write_trial(record)
+                try:
+                    run_dir.write_trial(record)
+                except (ValueError, TypeError) as exc:  # NaN or an odd type in the record: a failed trial, explained
+                    record = _unwritable(by_id[record["trial_id"]], record, exc, config_hash)
+                    run_dir.write_trial(record)
                 progress.update(record)
         finally:
             wall = time.perf_counter() - t0
-            records = run_dir.read_trials([t.trial_id for t in specs])
-            complete = len(records) == len(specs)
-            summary = summarise(records, suite=suite.name, config_hash=config_hash, version=prov["version"],
-                                methods=list(suite.methods), oracles=list(suite.oracles), extra={
-                                    "complete": complete, "n_planned": len(specs), "provenance": prov,
-                                    "run": _throughput(records, progress.done, wall, workers)})
-            write_json_atomic(out / "summary.json", summary)
+            with _sigint_deferred():  # a second Ctrl-C lands after the summary is written, not inside it
+                records = run_dir.read_trials([t.trial_id for t in specs])
+                complete = len(records) == len(specs)
+                summary = summarise(records, suite=suite.name, config_hash=config_hash, version=prov["version"],
+                                    methods=list(suite.methods), oracles=list(suite.oracles), extra={
+                                        "complete": complete, "n_planned": len(specs), "provenance": prov,
+                                        "run": _throughput(records, progress.done, wall, workers)})
+                write_json_atomic(out / "summary.json", summary)
     return summary
+
+
+@contextlib.contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """Hold back Ctrl-C during the block (main thread only): one that arrives meanwhile is re-delivered to the
+    previous handler at its end (KeyboardInterrupt by default), so the block is never cut in half."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pending: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: pending.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if pending and callable(previous):
+            previous(signal.SIGINT, None)
+
+
+def _unwritable(spec: TrialSpec, record: dict, exc: Exception, config_hash: str) -> dict[str, Any]:
+    """The failed record that replaces a trial record strict JSON cannot hold (the run goes on)."""
+    bad = non_finite_paths(record)
+    why = f"non-finite numbers at {', '.join(bad[:5])}" + (f" and {len(bad) - 5} more" if len(bad) > 5 else "") \
+        if bad else f"{type(exc).__name__}: {exc}"
+    failed = failed_record(spec, f"trial record cannot be written as JSON: {why}", detail=str(exc),
+                           elapsed=(record.get("timing_s") or {}).get("total"))
+    failed["config_hash"] = config_hash
+    return failed
 
 
 def _throughput(records: list[dict], n_run: int, wall: float, workers: int) -> dict[str, Any]:

@@ -26,6 +26,23 @@ class RunLockedError(RuntimeError):
     """Another run is writing into the same results directory."""
 
 
+_HELD_LOCKS: set[int] = set()
+
+
+def _release_locks_in_child() -> None:
+    """A forked trial process must not share the run's lock: a lock is held while any copy of its descriptor is
+    open, so a trial outliving a killed runner would keep the directory locked."""
+    for fd in _HELD_LOCKS:
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+    _HELD_LOCKS.clear()
+
+
+os.register_at_fork(after_in_child=_release_locks_in_child)
+
+
 def write_json_atomic(path: Path, data: Any) -> None:
     """Write ``data`` as JSON to ``path`` atomically (see :func:`write_text_atomic`)."""
     write_text_atomic(path, json.dumps(data, indent=1, allow_nan=False, default=_json_default))
@@ -49,6 +66,21 @@ def write_text_atomic(path: Path, text: str) -> None:
         except FileNotFoundError:
             pass
         raise
+
+
+def non_finite_paths(obj: Any, path: str = "") -> list[str]:
+    """Paths (``a.b[2].c``) of the NaN / infinite floats inside plain data, which strict JSON cannot hold."""
+    import numpy as np
+
+    if isinstance(obj, float | np.floating):
+        return [] if np.isfinite(obj) else [f"{path or '<root>'} ({float(obj)})"]
+    if isinstance(obj, dict):
+        return [p for k, v in obj.items() for p in non_finite_paths(v, f"{path}.{k}" if path else str(k))]
+    if isinstance(obj, list | tuple):
+        return [p for i, v in enumerate(obj) for p in non_finite_paths(v, f"{path}[{i}]")]
+    if isinstance(obj, np.ndarray) and obj.dtype.kind == "f" and not np.isfinite(obj).all():
+        return [f"{path} (array with non-finite values)"]
+    return []
 
 
 def _json_default(obj: Any) -> Any:
@@ -93,11 +125,13 @@ class RunDirectory:
         os.ftruncate(fd, 0)
         os.write(fd, f"{os.getpid()}\n".encode())
         self._lock_fd = fd
+        _HELD_LOCKS.add(fd)
         self.clean_temporaries()
         return self
 
     def __exit__(self, *exc: object) -> None:
         if self._lock_fd is not None:
+            _HELD_LOCKS.discard(self._lock_fd)
             fcntl.flock(self._lock_fd, fcntl.LOCK_UN)
             os.close(self._lock_fd)
             self._lock_fd = None
@@ -115,14 +149,15 @@ class RunDirectory:
         return self.trials_dir / f"{trial_id}.json"
 
     def finished(self, config_hash: str) -> set[str]:
-        """Ids of trials already recorded by a run with the same configuration hash."""
+        """Ids of trials already recorded by a run with the same configuration hash; a failure of the machinery
+        (``retryable``: killed process, timeout, lost worker) does not count, so a resumed run retries it."""
         done = set()
         for p in self.trials_dir.glob("*.json"):
             try:
                 rec = read_json(p)
             except (OSError, ValueError):
                 continue  # unreadable: it will be run again
-            if rec.get("config_hash") == config_hash:
+            if isinstance(rec, dict) and rec.get("config_hash") == config_hash and not rec.get("retryable"):
                 done.add(rec.get("trial_id", p.stem))
         return done
 

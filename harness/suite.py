@@ -30,13 +30,14 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from scenes.config import ConfigError, Fields, load_yaml
+from scenes.config import ConfigError, Fields, load_yaml, show
 from scenes.generator import DATA_DIR as SCENE_DATA
 
 SUITES_DIR = Path(__file__).parent / "suites"
 METHODS = ("core", "paper")
 ORACLES = ("segmentation", "classification", "pairing", "pose")
 SWEEPABLE = ("noise_scale", "footprint_rays", "max_range")
+MAX_TRIALS = 100_000  # a suite larger than this is a typo (e.g. a seed list pasted twice), not a benchmark
 
 
 @dataclass(frozen=True)
@@ -115,10 +116,18 @@ def resolve_suite_path(name_or_file: str) -> Path:
     return shipped
 
 
+def _is_file(path: Path) -> bool:
+    """``path.is_file()``, False for a name the OS cannot even look up (too long, ...)."""
+    try:
+        return path.is_file()
+    except OSError:
+        return False
+
+
 def _resolve_data(f: Fields, key: str, value: str, base: Path) -> str:
     """A shipped scene/spec name or a path (relative to the suite file)."""
     for cand in (SCENE_DATA / f"{value}.yaml", base / value, Path(value)):
-        if cand.is_file():
+        if _is_file(cand):
             return str(cand.resolve())
     raise f.error(key, f"no shipped file named {value!r} and no such file")
 
@@ -129,6 +138,7 @@ def load_suite(name_or_file: str) -> Suite:
 
 
 def suite_from_dict(data: Any, source: str = "<suite>", base: Path = Path(".")) -> Suite:
+    from recognition.describe import CLASSIFIERS
     from sensors.config import load_sensor  # validated here so a bad preset fails before any trial runs
 
     root = Fields(data, source)
@@ -146,12 +156,18 @@ def suite_from_dict(data: Any, source: str = "<suite>", base: Path = Path(".")) 
         params = methods_f.raw(m)
         if params is not None and not isinstance(params, dict):
             raise methods_f.error(str(m), "expected a mapping of parameters")
+        # validated here, not at each trial: a typo would otherwise fail every trial of the run one by one
+        pf = Fields(params or {}, source, methods_f.child_path(str(m)))
+        if pf.has("classifier"):
+            pf.string("classifier", choices=CLASSIFIERS)
+        pf.check_unknown(("classifier",))
         methods[m] = dict(params or {})
     if "core" not in methods:
         raise methods_f.error(None, "the suite must run the 'core' method")
     oracles = root.raw("oracles", [])
     if not isinstance(oracles, list) or any(o not in ORACLES for o in oracles) or len(set(oracles)) != len(oracles):
-        raise root.error("oracles", f"expected a list of distinct oracles from {', '.join(ORACLES)}, got {oracles!r}")
+        raise root.error("oracles", f"expected a list of distinct oracles from {', '.join(ORACLES)}, "
+                                    f"got {show(oracles)}")
     trials: list[TrialSpec] = []
     groups = root.list_of_fields("groups")
     if not groups:
@@ -159,17 +175,18 @@ def suite_from_dict(data: Any, source: str = "<suite>", base: Path = Path(".")) 
     for g in groups:
         scene_name = g.string("scene")
         scene_file = _resolve_data(g, "scene", scene_name, base)
-        pert = g.raw("perturbation", None)
+        pert = g.string("perturbation") if g.raw("perturbation", None) is not None else None
         pert_file = _resolve_data(g, "perturbation", pert, base) if pert is not None else None
         pseeds = _int_list(g, "perturbation_seeds", [0])
         nseeds = _int_list(g, "noise_seeds", [0])
         n_views = g.integer("viewpoints", 1, min=1, max=10_000)
         sensor = g.string("sensor")
+        local = _is_file(base / sensor)
         try:
-            load_sensor(sensor if not (base / sensor).is_file() else str(base / sensor))
-        except (ConfigError, ValueError, FileNotFoundError) as exc:
+            load_sensor(sensor if not local else str(base / sensor))
+        except (ConfigError, ValueError, OSError) as exc:
             raise g.error("sensor", str(exc)) from None
-        sensor_ref = str((base / sensor).resolve()) if (base / sensor).is_file() else sensor
+        sensor_ref = str((base / sensor).resolve()) if local else sensor
         overrides: dict[str, float] = {}
         if g.has("max_range"):
             overrides["max_range"] = g.number("max_range", positive=True)
@@ -186,6 +203,13 @@ def suite_from_dict(data: Any, source: str = "<suite>", base: Path = Path(".")) 
         min_pixels = g.integer("min_view_pixels", 200, min=1)
         min_surfaces = g.integer("min_view_surfaces", 4, min=0)
         g.check_unknown()
+        n_combos = 1
+        for _, vals in sweep_values:
+            n_combos *= len(vals)
+        n_group = n_combos * len(pseeds) * n_views * len(nseeds)
+        if len(trials) + n_group > MAX_TRIALS:  # checked before expanding: a huge product would exhaust memory
+            raise g.error(None, f"this group expands to {n_group} trials (sweep values x perturbation seeds x "
+                                f"viewpoints x noise seeds), more than the {MAX_TRIALS} a suite may hold in all")
         combos = list(itertools.product(*[[(k, v) for v in vals] for k, vals in sweep_values])) or [()]
         for combo in combos:
             ov = {**overrides, **dict(combo)}
@@ -213,7 +237,7 @@ def _int_list(f: Fields, key: str, default: list[int]) -> list[int]:
     vals = f.raw(key, default)
     if not isinstance(vals, list) or not vals or any(isinstance(v, bool) or not isinstance(v, int) or v < 0
                                                      for v in vals):
-        raise f.error(key, f"expected a non-empty list of non-negative integers, got {vals!r}")
+        raise f.error(key, f"expected a non-empty list of non-negative integers, got {show(vals)}")
     if len(set(vals)) != len(vals):
         raise f.error(key, "values must be distinct")
     return list(vals)

@@ -8,6 +8,7 @@ model); its per-pixel sigma comes from the noise model and its own normal estima
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 
@@ -15,9 +16,11 @@ import numpy as np
 
 from recognition.classify import PaperParams, PatchClassification, SelectParams, classify_patch
 from recognition.segmentation import Segmentation, SegmentationParams, SurfaceType, segment
+from sensors.config import MAX_PIXELS
 from sensors.range_image import Scan
 
 CLASSIFIERS = ("select", "paper")
+BYTES_PER_PIXEL = 400  # peak working memory of describe() per pixel, measured at 1000^2 and 2000^2 (with margin)
 
 
 @dataclass(frozen=True)
@@ -30,18 +33,24 @@ class DescribeParams:
     segmentation : parameters of the H-K segmenter.
     classifier_params : ``SelectParams`` or ``PaperParams`` (None: the classifier's defaults).
     min_classify_pixels : patches smaller than this are labelled OTH without fitting (reason ``too small``).
+    max_pixels : largest image (H x W) accepted. The segmentation's working memory grows with the pixel count
+        (about ``BYTES_PER_PIXEL``; measured 1.5 GB peak for 2000 x 2000), so a larger image is refused with
+        a clear error up front rather than exhausting the machine's memory part-way; raise it knowingly.
     """
 
     classifier: str = "select"
     segmentation: SegmentationParams = field(default_factory=SegmentationParams)
     classifier_params: SelectParams | PaperParams | None = None
     min_classify_pixels: int = 30
+    max_pixels: int = MAX_PIXELS
 
     def __post_init__(self):
-        if self.classifier not in CLASSIFIERS:
-            raise ValueError(f"classifier must be one of {', '.join(CLASSIFIERS)}, got {self.classifier!r}")
+        if not isinstance(self.classifier, str) or self.classifier not in CLASSIFIERS:
+            raise ValueError(f"classifier must be one of {', '.join(CLASSIFIERS)}, got {self.classifier!r:.80}")
         if self.min_classify_pixels < 1:
             raise ValueError(f"min_classify_pixels must be >= 1, got {self.min_classify_pixels}")
+        if self.max_pixels < 1:
+            raise ValueError(f"max_pixels must be >= 1, got {self.max_pixels}")
 
 
 @dataclass(frozen=True)
@@ -111,8 +120,14 @@ def describe(scan: Scan, params: DescribeParams = DescribeParams(),
              segmentation: Segmentation | None = None) -> SceneDescription:
     """Segment ``scan`` (unless ``segmentation`` is given) and classify every patch.
 
-    Returns an empty description for an image with no returns.
+    Returns an empty description for an image with no returns (all NaN or inf, or too small to fit).
+
+    Raises
+    ------
+    ValueError
+        For a scan whose arrays disagree in shape, with negative ranges, or larger than ``params.max_pixels``.
     """
+    check_scan(scan, params.max_pixels)
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
     sigma0 = core_sigma(scan)
@@ -124,6 +139,7 @@ def describe(scan: Scan, params: DescribeParams = DescribeParams(),
     flat_points = scan.points.reshape(-1, 3)
     flat_sigma = sigma.reshape(-1)
     flat_normals = segmentation.normals.reshape(-1, 3)
+    offsets = _footprint_offsets(scan.noise) if params.classifier == "select" else None
     patches = []
     for seg_patch in segmentation.patches:
         pix = np.ravel_multi_index((seg_patch.pixels[:, 0], seg_patch.pixels[:, 1]), scan.range.shape)
@@ -133,11 +149,68 @@ def describe(scan: Scan, params: DescribeParams = DescribeParams(),
             cls = _too_small(len(pix))
         else:
             cls = classify_patch(pts, np.maximum(sig, 1e-6), flat_normals[pix], method=params.classifier,
-                                 params=params.classifier_params, planar_hint=planar)
+                                 params=params.classifier_params, planar_hint=planar,
+                                 rays=None if offsets is None else functools.partial(
+                                     patch_subrays, scan.sensor, offsets, seg_patch.pixels[:, 0],
+                                     seg_patch.pixels[:, 1]))
         patches.append(ScenePatch(seg_patch.id, pix, pts, sig, SurfaceType(seg_patch.surface_type), cls,
                                   seg_patch.small, seg_patch.noisy))
     timing["classification"] = time.perf_counter() - t0
     return SceneDescription(tuple(patches), segmentation.labels, segmentation, sigma, timing)
+
+
+def check_scan(scan: Scan, max_pixels: int = MAX_PIXELS) -> None:
+    """Raise ``ValueError`` for a scan the core cannot use: ``range`` not (H, W) matching the sensor model,
+    ``points`` not (H, W, 3), a negative range (no return is NaN, never a sign), or more than ``max_pixels``
+    pixels (see :attr:`DescribeParams.max_pixels`). Non-finite values are allowed: they mean no return."""
+    rng, pts = np.asanyarray(scan.range), np.asanyarray(scan.points)
+    if rng.ndim != 2 or rng.shape[0] < 1 or rng.shape[1] < 1:
+        raise ValueError(f"scan.range must have shape (H, W), got {rng.shape}")
+    if pts.shape != (*rng.shape, 3):
+        raise ValueError(f"scan.points must have shape {(*rng.shape, 3)} (H, W, 3), got {pts.shape}")
+    if tuple(scan.sensor.shape) != rng.shape:
+        raise ValueError(f"scan.range has shape {rng.shape} but the sensor model's image is {scan.sensor.shape}")
+    if rng.size > max_pixels:
+        h, w = rng.shape
+        raise ValueError(f"range image {h} x {w} ({rng.size / 1e6:.1f} M pixels) is larger than max_pixels = "
+                         f"{max_pixels} (about {rng.size * BYTES_PER_PIXEL / 1e9:.1f} GB of working memory would be "
+                         "needed): decimate the scan (every k-th row and column, intrinsics scaled by 1/k) or pass "
+                         "DescribeParams(max_pixels=...) if the machine has the memory")
+    negative = int(np.count_nonzero(np.isfinite(rng) & (np.nan_to_num(rng, nan=0.0) < 0)))
+    if negative:
+        raise ValueError(f"scan.range has {negative} negative value(s): ranges are >= 0 metres, NaN where no return")
+
+
+def _footprint_offsets(noise) -> tuple[tuple[float, float], ...] | None:
+    """The noise model's beam-footprint sub-ray offsets in pixels (centre first), or None without one."""
+    try:
+        return tuple((float(u), float(v)) for u, v in np.asarray(noise.footprint_offsets()).reshape(-1, 2))
+    except (AttributeError, TypeError, ValueError):
+        return None
+
+
+def patch_subrays(sensor, offsets, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Unit sub-ray directions (k, N, 3) of the pixels ``(rows, cols)`` for the footprint ``offsets`` (k, 2)
+    in pixels: sensor knowledge (its model and noise model), not truth (DESIGN 10.1). Equal to
+    ``sensor.ray_directions(offset)[rows, cols]`` (a test checks it) without building whole images: only the
+    patches that end up cylinders or spheres need them."""
+    out = np.empty((len(offsets), len(rows), 3))
+    for k, off in enumerate(offsets):
+        if hasattr(sensor, "angles"):  # scanning laser: azimuth x elevation grid
+            az, el = sensor.angles(off)
+            a, e = az[cols], el[rows]
+            ce = np.cos(e)
+            out[k, :, 0] = ce * np.sin(a)
+            out[k, :, 1] = -np.sin(e)
+            out[k, :, 2] = ce * np.cos(a)
+        elif all(hasattr(sensor, n) for n in ("fx", "fy", "cx", "cy")):  # pinhole
+            out[k, :, 0] = (cols + off[0] - sensor.cx) / sensor.fx
+            out[k, :, 1] = (rows + off[1] - sensor.cy) / sensor.fy
+            out[k, :, 2] = 1.0
+            out[k] /= np.linalg.norm(out[k], axis=1, keepdims=True)
+        else:
+            out[k] = sensor.ray_directions(off)[rows, cols]
+    return out
 
 
 def _too_small(n: int) -> PatchClassification:

@@ -10,6 +10,7 @@ a bad file gives one clear message naming the file, the field path and the reaso
 from __future__ import annotations
 
 import math
+import reprlib
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -17,11 +18,29 @@ from typing import Any
 import numpy as np
 import yaml
 
+MAX_REASON = 500
+_REPR = reprlib.Repr()
+_REPR.maxlevel, _REPR.maxlist, _REPR.maxdict, _REPR.maxtuple, _REPR.maxset = 3, 6, 6, 6, 6
+_REPR.maxstring, _REPR.maxother = 80, 80
+
+
+def show(value: Any) -> str:
+    """A short, bounded ``repr`` of a config value for error messages.
+
+    Plain ``repr`` is unbounded: a YAML alias bomb (a few lines expanding to 10^9 shared list elements), a huge
+    string or an integer of thousands of digits would hang the error message or raise inside it.
+    """
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 64:
+        return f"an integer of {value.bit_length()} bits"
+    return _REPR.repr(value)
+
 
 class ConfigError(ValueError):
     """A configuration file or mapping that cannot be used, with where and why."""
 
     def __init__(self, source: str, path: str, reason: str):
+        if len(reason) > MAX_REASON:  # e.g. a 10 kB string quoted back: keep messages one readable line
+            reason = reason[:MAX_REASON] + "... (truncated)"
         self.source, self.path, self.reason = source, path, reason
         where = ": ".join(p for p in (source, path) if p)
         super().__init__(f"{where}: {reason}" if where else reason)
@@ -50,6 +69,8 @@ def parse_yaml(text: str, source: str = "<string>") -> Any:
         raise ConfigError(source, where, f"malformed YAML: {problem}") from None
     except RecursionError:
         raise ConfigError(source, "", "malformed YAML: nesting too deep") from None
+    except ValueError as exc:  # a scalar the constructor cannot convert, e.g. an integer of > 4300 digits
+        raise ConfigError(source, "", f"malformed YAML: {str(exc).split(':')[0]}") from None
 
 
 def dump_yaml(data: Any) -> str:
@@ -112,25 +133,25 @@ class Fields:
     def string(self, key: str, default: Any = ..., choices: Iterable[str] | None = None) -> str:
         value = self.raw(key, default)
         if not isinstance(value, str) or not value:
-            raise self.error(key, f"expected a non-empty string, got {value!r}")
+            raise self.error(key, f"expected a non-empty string, got {show(value)}")
         if choices is not None and value not in (allowed := tuple(choices)):
-            raise self.error(key, f"must be one of {', '.join(allowed)}, got {value!r}")
+            raise self.error(key, f"must be one of {', '.join(allowed)}, got {show(value)}")
         return value
 
     def boolean(self, key: str, default: Any = ...) -> bool:
         value = self.raw(key, default)
         if not isinstance(value, bool):
-            raise self.error(key, f"expected true or false, got {value!r}")
+            raise self.error(key, f"expected true or false, got {show(value)}")
         return value
 
     def integer(self, key: str, default: Any = ..., *, min: int | None = None, max: int | None = None) -> int:
         value = self.raw(key, default)
         if isinstance(value, bool) or not isinstance(value, int):
-            raise self.error(key, f"expected an integer, got {value!r}")
+            raise self.error(key, f"expected an integer, got {show(value)}")
         if min is not None and value < min:
-            raise self.error(key, f"must be >= {min}, got {value}")
+            raise self.error(key, f"must be >= {min}, got {show(value)}")
         if max is not None and value > max:
-            raise self.error(key, f"must be <= {max}, got {value}")
+            raise self.error(key, f"must be <= {max}, got {show(value)}")
         return value
 
     def number(self, key: str, default: Any = ..., *, min: float | None = None, max: float | None = None,
@@ -144,7 +165,7 @@ class Fields:
         value = self.raw(key, default)
         path = self.child_path(key)
         if not isinstance(value, list | tuple) or len(value) != size:
-            raise ConfigError(self.source, path, f"expected a list of {size} numbers, got {value!r}")
+            raise ConfigError(self.source, path, f"expected a list of {size} numbers, got {show(value)}")
         arr = np.array([check_number(v, self.source, f"{path}[{i}]") for i, v in enumerate(value)])
         norm = float(np.linalg.norm(arr))
         if (unit_norm or nonzero) and norm < 1e-12:
@@ -166,8 +187,11 @@ def check_number(value: Any, source: str, path: str, *, min: float | None = None
                  positive: bool = False, nonnegative: bool = False) -> float:
     """Validate one real number from a config."""
     if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ConfigError(source, path, f"expected a number, got {value!r}")
-    value = float(value)
+        raise ConfigError(source, path, f"expected a number, got {show(value)}")
+    try:
+        value = float(value)
+    except OverflowError:  # an int beyond float range
+        raise ConfigError(source, path, f"must be finite, got {show(value)}") from None
     if not math.isfinite(value):
         raise ConfigError(source, path, f"must be finite, got {value}")
     if positive and value <= 0:

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from scenes.config import ConfigError, Fields, dump_yaml, load_yaml, parse_yaml
+from scenes.config import ConfigError, Fields, dump_yaml, load_yaml, parse_yaml, show
 from scenes.features import FEATURE_TYPES, MATERIALS, Cone, Cylinder, Feature, Plane, Sphere, Torus, degrees_exact
 
 SCHEMA = "scene/1"
@@ -181,7 +181,7 @@ def feature_from_fields(f: Fields) -> Feature:
         _perpendicular(f, "u_axis", u_axis, normal, "normal")
         half = f.raw("half_size")
         if not isinstance(half, list) or len(half) != 2:
-            raise f.error("half_size", f"expected a list of 2 numbers, got {half!r}")
+            raise f.error("half_size", f"expected a list of 2 numbers, got {show(half)}")
         hs = tuple(Fields({"h": h}, f.source, f.child_path("half_size")).number("h", positive=True) for h in half)
         feat: Feature = Plane(fid, centre=f.vector("centre"), normal=normal, u_axis=u_axis, half_size=hs,
                               material=material)

@@ -46,13 +46,14 @@ from typing import Any
 
 import numpy as np
 
-from scenes.config import ConfigError, Fields, check_number, load_yaml, parse_yaml
+from scenes.config import ConfigError, Fields, check_number, load_yaml, parse_yaml, show
 from scenes.features import MATERIALS
 from scenes.geometry import check_transform, look_at
 from sensors.models import PinholeCamera, ScanningLaser, SensorModel
 from sensors.noise import QUANTISATION_MODES, RANGE_MODELS, NoiseModel
 
 SCHEMA = "sensor/1"
+MAX_PIXELS = 2048 * 2048  # largest image a sensor may produce; the core refuses larger ones (memory, see describe)
 PRESET_DIR = Path(__file__).parent / "presets"
 
 
@@ -87,16 +88,23 @@ def load_sensor(spec: str | Path) -> SensorConfig:
         Unknown preset (and no such file), or an invalid file (naming the field and the reason).
     """
     path = Path(spec)
-    if path.suffix in (".yaml", ".yml") or path.exists():
-        if not path.exists():
+    if path.suffix in (".yaml", ".yml") or _exists(path):
+        if not _exists(path):
             raise ConfigError(str(spec), "", "no such sensor file")
         return sensor_from_dict(load_yaml(path), str(path))
     name = str(spec)
     preset = PRESET_DIR / f"{name}.yaml"
-    if not preset.exists():
+    if not _exists(preset):
         raise ConfigError("", "", f"unknown sensor preset {name!r} (known presets: {', '.join(preset_names())}; "
                           "or give a path to a .yaml file)")
     return sensor_from_dict(load_yaml(preset), f"preset {name}")
+
+
+def _exists(path: Path) -> bool:
+    try:
+        return path.exists()
+    except OSError:  # e.g. a name too long for the file system: no such file
+        return False
 
 
 def sensor_from_yaml(text: str, source: str = "<string>") -> SensorConfig:
@@ -112,7 +120,7 @@ def sensor_from_dict(data: Any, source: str = "<sensor>") -> SensorConfig:
     name = root.string("name", "sensor")
     description = root.raw("description", "")
     if not isinstance(description, str):
-        raise root.error("description", f"expected a string, got {description!r}")
+        raise root.error("description", f"expected a string, got {show(description)}")
     kinds = [k for k in ("pinhole", "laser") if root.has(k)]
     if len(kinds) != 1:
         raise root.error(None, "needs exactly one of the sections 'pinhole' or 'laser'"
@@ -133,6 +141,12 @@ def _wrap(f: Fields, build):
         raise ConfigError(f.source, f.path, str(exc)) from None
 
 
+def _check_pixels(f: Fields, width: int, height: int) -> None:
+    if width * height > MAX_PIXELS:
+        raise f.error(None, f"{width} x {height} = {width * height} pixels is more than the {MAX_PIXELS} "
+                            "(2048 x 2048) a simulated scan may have (memory grows with the pixel count)")
+
+
 def _range_limits(f: Fields) -> tuple[float, float]:
     lo = f.number("min_range", 0.0, nonnegative=True)
     hi = f.number("max_range", positive=True)
@@ -144,6 +158,7 @@ def _range_limits(f: Fields) -> tuple[float, float]:
 def _pinhole(f: Fields) -> PinholeCamera:
     width = f.integer("width", min=1)
     height = f.integer("height", min=1)
+    _check_pixels(f, width, height)
     lo, hi = _range_limits(f)
     if f.has("intrinsics"):
         if f.has("fov_deg"):
@@ -157,7 +172,7 @@ def _pinhole(f: Fields) -> PinholeCamera:
     fov = f.raw("fov_deg")
     values = fov if isinstance(fov, list) else [fov]
     if len(values) not in (1, 2):
-        raise f.error("fov_deg", f"expected a number or [horizontal, vertical], got {fov!r}")
+        raise f.error("fov_deg", f"expected a number or [horizontal, vertical], got {show(fov)}")
     angles = []
     for i, v in enumerate(values):
         path = f.child_path("fov_deg") + (f"[{i}]" if isinstance(fov, list) else "")
@@ -174,7 +189,7 @@ def _angle_pair(f: Fields, key: str, limit: float) -> tuple[float, float]:
     value = f.raw(key)
     path = f.child_path(key)
     if not isinstance(value, list) or len(value) != 2:
-        raise ConfigError(f.source, path, f"expected [min, max] in degrees, got {value!r}")
+        raise ConfigError(f.source, path, f"expected [min, max] in degrees, got {show(value)}")
     a, b = (Fields({"x": v}, f.source, f"{path}[{i}]").number("x", min=-limit, max=limit)
             for i, v in enumerate(value))
     if b <= a:
@@ -185,6 +200,7 @@ def _angle_pair(f: Fields, key: str, limit: float) -> tuple[float, float]:
 def _laser(f: Fields) -> ScanningLaser:
     n_az = f.integer("n_azimuth", min=1)
     n_el = f.integer("n_elevation", min=1)
+    _check_pixels(f, n_az, n_el)
     az = _angle_pair(f, "azimuth_deg", 180.0)
     el = _angle_pair(f, "elevation_deg", 90.0)
     lo, hi = _range_limits(f)
@@ -287,4 +303,5 @@ def noise_from_dict(d: dict[str, Any]) -> NoiseModel:
 
 
 __all__ = ["SensorConfig", "load_sensor", "sensor_from_dict", "sensor_from_yaml", "preset_names", "PRESET_DIR",
-           "sensor_model_to_dict", "sensor_model_from_dict", "noise_to_dict", "noise_from_dict", "SCHEMA"]
+           "sensor_model_to_dict", "sensor_model_from_dict", "noise_to_dict", "noise_from_dict", "SCHEMA",
+           "MAX_PIXELS"]

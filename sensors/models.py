@@ -86,8 +86,11 @@ class PinholeCamera:
         for name, value in (("fov_deg", fov_deg), ("vfov_deg", vfov_deg)):
             if value is not None and not 0.0 < float(value) < 180.0:
                 raise ValueError(f"{name} must be in (0, 180) degrees, got {value}")
-        fx = (width / 2.0) / math.tan(math.radians(fov_deg) / 2.0)
-        fy = fx if vfov_deg is None else (height / 2.0) / math.tan(math.radians(vfov_deg) / 2.0)
+        tans = [math.tan(math.radians(v) / 2.0) for v in (fov_deg, vfov_deg) if v is not None]
+        if min(tans) <= 0.0:  # a field of view so small that its tangent underflows (e.g. 1e-320 degrees)
+            raise ValueError(f"field of view too small to give a finite focal length: {fov_deg}, {vfov_deg}")
+        fx = (width / 2.0) / tans[0]
+        fy = fx if vfov_deg is None else (height / 2.0) / tans[1]
         return cls(width, height, fx, fy, (width - 1) / 2.0, (height - 1) / 2.0, min_range, max_range)
 
     @property
