@@ -4,8 +4,9 @@ The target is not a sample of the whole CAD model: hidden back faces pull ICP of
 gave exactly 20 mm errors). It is the model's predicted range image at the hypothesised pose
 (:class:`recognition.verify.Prediction`, shared with verification), as world points with analytic normals
 of the features they lie on. The source is the scan's points (sensor frame) on a regular pixel stride.
-Open3D's point-to-plane ICP with a Tukey robust kernel runs from the hypothesised pose, twice (a wide then
-a narrow correspondence distance, both scaled with the median range). Open3D runs single-threaded here
+Open3D's point-to-plane ICP with a Tukey robust kernel runs from the hypothesised pose in a few passes of
+shrinking correspondence distance (scaled with the median range, floored by the target's point spacing),
+on a few thousand source points. Open3D runs single-threaded here
 (``OMP``-free reductions are not guaranteed otherwise), so results are deterministic.
 
 The covariance of the result is the point-to-plane information at the final pose,
@@ -39,24 +40,30 @@ class IcpParams:
     max_source_points : the source is thinned on a regular stride to at most this many points.
     max_corr_rel : first-pass maximum correspondence distance, as a fraction of the median range ...
     max_corr_min_m : ... but at least this (metres).
-    narrow_factor : the second pass uses ``max_corr / narrow_factor``.
+    narrow_factor : each further pass divides the correspondence distance by this ...
+    n_passes : ... over this many passes ...
+    spacing_factor : ... but never below this many times the target's point spacing at the median range
+        (the target is a prediction on a pixel stride: nearest neighbours are that far apart).
     tukey_rel : Tukey kernel parameter as a fraction of the pass's correspondence distance.
     max_iterations : per pass.
     min_fitness : below this inlier fraction the result is not ok.
     """
 
     source_stride: int = 3
-    max_source_points: int = 12000
-    max_corr_rel: float = 0.01
+    max_source_points: int = 3000
+    max_corr_rel: float = 0.03
     max_corr_min_m: float = 0.005
-    narrow_factor: float = 4.0
+    narrow_factor: float = 3.0
+    n_passes: int = 3
+    spacing_factor: float = 2.5
     tukey_rel: float = 0.5
-    max_iterations: int = 30
+    max_iterations: int = 15
     min_fitness: float = 0.2
 
     def __post_init__(self):
-        if self.source_stride < 1 or self.max_source_points < 10 or self.max_iterations < 1:
-            raise ValueError("source_stride >= 1, max_source_points >= 10 and max_iterations >= 1 are required")
+        if self.source_stride < 1 or self.max_source_points < 10 or self.max_iterations < 1 or self.n_passes < 1:
+            raise ValueError("source_stride >= 1, max_source_points >= 10, max_iterations >= 1 and n_passes >= 1 "
+                             "are required")
         for name in ("max_corr_rel", "max_corr_min_m", "narrow_factor", "tukey_rel"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
@@ -169,16 +176,15 @@ def icp_refine(scan: Scan, prediction: Prediction, model: SceneModel, T_init: np
     target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tgt))
     target.normals = o3d.utility.Vector3dVector(nrm)
     d = max(params.max_corr_rel * med_range, params.max_corr_min_m)
-    T = T0
-    res = None
-    for dist in (d, d / params.narrow_factor):
-        est = o3d.pipelines.registration.TransformationEstimationPointToPlane(
-            o3d.pipelines.registration.TukeyLoss(k=params.tukey_rel * dist))
-        res = o3d.pipelines.registration.registration_icp(
-            source, target, dist, T, est,
-            o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7,
-                                                              max_iteration=params.max_iterations))
-        T = np.asarray(res.transformation).copy()
+    pitch = getattr(prediction.sensor, "pixel_pitch_rad", None)
+    floor = params.spacing_factor * med_range * float(pitch) if pitch else 0.0
+    raw = [max(d / params.narrow_factor**k, params.max_corr_min_m) for k in range(params.n_passes)]
+    threads = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)  # a parallel reduction sums in thread order: one thread keeps ICP deterministic
+    try:
+        T, res = _icp_passes(o3d, source, target, raw, floor, T0, params)
+    finally:
+        o3d.utility.set_max_threads(threads)
     corr = np.asarray(res.correspondence_set)
     if len(corr) < 30 or res.fitness < params.min_fitness:
         return IcpResult(False, f"ICP fitness {res.fitness:.2f} below {params.min_fitness} "
@@ -196,6 +202,23 @@ def icp_refine(scan: Scan, prediction: Prediction, model: SceneModel, T_init: np
     free, _ = free_dof_of(Ji, med_range, 0.1)
     cov = np.linalg.pinv(info, rcond=1e-12, hermitian=True)
     return IcpResult(True, "", T, cov, float(res.fitness), float(np.sqrt(np.mean(r[inl] ** 2))), len(corr), free)
+
+
+def _icp_passes(o3d, source, target, raw: list[float], floor: float, T: np.ndarray, params: IcpParams):
+    """Point-to-plane ICP passes with narrowing correspondence distances; returns (T, last result)."""
+    res = None
+    for dist_raw in raw:
+        # the correspondence search is floored by the target spacing, the robust kernel (on the
+        # point-to-plane residual, exact on analytic normals) is not: changed parts must not pull
+        dist = max(dist_raw, floor)
+        est = o3d.pipelines.registration.TransformationEstimationPointToPlane(
+            o3d.pipelines.registration.TukeyLoss(k=params.tukey_rel * dist_raw))
+        res = o3d.pipelines.registration.registration_icp(
+            source, target, dist, T, est,
+            o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7,
+                                                              max_iteration=params.max_iterations))
+        T = np.asarray(res.transformation).copy()
+    return T, res
 
 
 def _replace_reason(r: IcpResult, reason: str) -> IcpResult:

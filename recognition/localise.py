@@ -5,15 +5,19 @@ priori model only (plus ``scan.pose_prior`` when the suite gives one, DESIGN 10.
 
 1. interpretation-tree matching of PLAN/CYL/CONE/SPH patches to model elements
    (:mod:`recognition.matching`), each hypothesis with a closed-form, refined pose (:mod:`recognition.pose`);
-2. verification of the best hypotheses by the model's predicted range image (:mod:`recognition.verify`,
-   cast on a coarse grid of the sensor's own rays); the best agreement wins;
-3. ICP against the model surfaces predicted visible from that pose (:mod:`recognition.icp`);
+2. verification: every hypothesis is screened by its agreement with the model's predicted range image on a
+   coarse grid of the sensor's own rays (:mod:`recognition.verify`, a few ms each), the best few verified
+   on a finer grid, with an allowance for a closed-form pose's error (``pre_icp_rel``);
+3. the best few are refined by a quick ICP (:mod:`recognition.icp`) and verified again: the agreement after
+   ICP decides (this is what settles the 90/180 deg alternatives of symmetric walls and bays); another
+   distinct pose agreeing within ``ambiguity_margin`` makes the result ambiguous (not ok). The winner gets
+   the full ICP against the model surfaces predicted visible from it;
 4. the prediction at the final pose (full resolution), returned for change detection (DESIGN 10.11), and
    the final confidence (agreement at the final pose). OTH patches and the patches left to wildcards are
    then paired by overlap with the prediction (the paper's second, looser stage).
 
 The result says why when it fails (``ok=False`` and ``reason``): no hypothesis, low confidence, pose left
-underconstrained. Nothing here sees the truth.
+underconstrained, ambiguous, search budget reached. Nothing here sees the truth.
 """
 
 from __future__ import annotations
@@ -27,7 +31,6 @@ import numpy as np
 from recognition.describe import SceneDescription
 from recognition.icp import IcpParams, icp_refine
 from recognition.matching import MatchParams, given_match, match, model_elements
-from recognition.pose import PoseEstimate
 from recognition.verify import Prediction, VerifyParams, agreement, predict
 from scenes.model import SceneModel
 from sensors.range_image import Scan
@@ -44,8 +47,20 @@ class LocaliseParams:
     match : interpretation-tree parameters.
     verify : verification parameters.
     icp : ICP parameters.
-    max_verify : at most this many hypotheses are verified (best tree score first).
-    min_confidence : below this final agreement the result is not ok.
+    max_screen, screen_stride : at most this many hypotheses (best tree score first) are screened by their
+        agreement on a prediction at this pixel stride ...
+    max_verify : ... and the best this many verified at ``verify.stride``.
+    icp_screen : the quick ICP of the finalists (``icp`` is the winner's full ICP).
+    max_icp : the best this many verified hypotheses (agreement at least ``icp_fraction`` of the best) are
+        refined by the quick ICP and verified again; the agreement after it decides.
+    accept_agreement, accept_margin : a first finalist agreeing at least ``accept_agreement`` after ICP,
+        and ahead of a remaining finalist's (pre-ICP) agreement by ``accept_margin``, ends the refinement.
+    ambiguity_margin : another distinct pose agreeing within this margin of the best after ICP makes the
+        result ambiguous (not ok: a symmetric scene the data cannot decide).
+    pre_icp_rel : the agreement threshold's fraction of the range before ICP (screening and verification of
+        closed-form poses; after ICP ``verify.rel`` applies).
+    min_confidence : below this final agreement the result is not ok (calibrated on the default suites:
+        right poses agreed 0.50-1.0, wrong ones up to 0.43).
     use_icp : run ICP (always, to tighten the pose; it also fixes the DOF the pairs leave free).
     prior_angle_deg, prior_dist_m : how far the true pose may be from ``scan.pose_prior`` (its noise);
         candidates are restricted accordingly. Ignored without a prior.
@@ -53,11 +68,21 @@ class LocaliseParams:
         prediction shows on at least this fraction of its agreeing pixels.
     """
 
-    match: MatchParams = field(default_factory=MatchParams)
+    match: MatchParams = field(default_factory=lambda: MatchParams(max_hypotheses=20))
     verify: VerifyParams = field(default_factory=VerifyParams)
     icp: IcpParams = field(default_factory=IcpParams)
+    max_screen: int = 20
+    screen_stride: int = 8
     max_verify: int = 6
-    min_confidence: float = 0.4
+    icp_screen: IcpParams = field(default_factory=lambda: IcpParams(max_source_points=1500, n_passes=2,
+                                                                    max_iterations=10))
+    max_icp: int = 4
+    icp_fraction: float = 0.5
+    accept_agreement: float = 0.6
+    accept_margin: float = 0.15
+    ambiguity_margin: float = 0.05
+    pre_icp_rel: float = 0.012
+    min_confidence: float = 0.45
     use_icp: bool = True
     prior_angle_deg: float = 5.0
     prior_dist_m: float = 0.3
@@ -149,6 +174,15 @@ def overlap_pairings(description: SceneDescription, prediction: Prediction, excl
     return out
 
 
+def _close(A: np.ndarray, B: np.ndarray, description: SceneDescription, angle_deg: float = 2.0,
+           rel: float = 0.02) -> bool:
+    """Whether two poses are the same up to ``angle_deg`` and ``rel`` x the scene's median range."""
+    c = (np.trace(A[:3, :3].T @ B[:3, :3]) - 1.0) / 2.0
+    rng = [float(np.linalg.norm(np.mean(p.points, axis=0))) for p in description.patches if len(p.points)]
+    scale = float(np.median(rng)) if rng else 1.0
+    return bool(c > math.cos(math.radians(angle_deg)) and np.linalg.norm(A[:3, 3] - B[:3, 3]) < rel * scale)
+
+
 def localise(description: SceneDescription, scan: Scan, model: SceneModel,
              params: LocaliseParams = LocaliseParams(), model_simulator=None,
              pairings: dict[int, tuple[str, str]] | None = None) -> PoseResult:
@@ -199,9 +233,9 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
         return failed(f"{why} ({len(res.items)} items, {res.n_nodes} nodes)")
     # verification of the best hypotheses (fully constrained ones first)
     t0 = time.perf_counter()
-    hyps = sorted(res.hypotheses, key=lambda h: (h.pose.free_dof > 0, -h.score))[: params.max_verify]
-    scored = []
-    for h in hyps:
+    hyps = sorted(res.hypotheses, key=lambda h: (h.pose.free_dof > 0, -h.score))[: params.max_screen]
+
+    def start_pose(h):
         T = h.pose.T_world_sensor
         if h.pose.free_dof > 0 and prior is not None:
             from recognition.matching import make_pair
@@ -209,26 +243,73 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
 
             pairs = [make_pair(res.items[i], el, e) for i, e in h.pairs if e >= 0]
             T = estimate_pose(pairs, T_init=prior, length_m=1.0).T_world_sensor
+        return T
+
+    # the tree's score hardly tells a symmetric alternative from the right pose (DESIGN 6.3): every
+    # hypothesis is screened on a coarse prediction (a few ms each), the best few verified finer
+    screen_stride = max(params.screen_stride, params.verify.stride)
+    # before ICP the pose may be a fraction of a degree off: the agreement allows for it (``pre_icp_rel``)
+    pre_v = replace(params.verify, rel=max(params.verify.rel, params.pre_icp_rel))
+    screen_v = replace(pre_v, stride=screen_stride)
+    screened = []
+    for h in hyps:
+        T = start_pose(h)
+        if screen_stride != params.verify.stride and len(hyps) > params.max_verify:
+            sc, _ = agreement(description, scan, predict(model_simulator, scan.sensor, T, screen_stride), screen_v)
+        else:
+            sc = 0.0
+        screened.append((sc, h, T))
+    screened.sort(key=lambda x: (-x[0], x[1].pose.free_dof > 0, -x[1].score))
+    scored = []
+    for _, h, T in screened[: params.max_verify]:
         pred = predict(model_simulator, scan.sensor, T, params.verify.stride)
-        score, _ = agreement(description, scan, pred, params.verify)
+        score, _ = agreement(description, scan, pred, pre_v)
         scored.append((score, h, pred))
     timing["verification"] = time.perf_counter() - t0
     scored.sort(key=lambda x: (-x[0], x[1].pose.free_dof))
-    score0, best, pred0 = scored[0]
-    pose0: PoseEstimate = best.pose
-    T_init = pred0.T_world_sensor
-    pairs = {patch_ids[i]: (str(el.feature_id[e]) if e >= 0 else None) for i, e in best.pairs}
-    # ICP
-    T_final, cov, free = T_init, pose0.cov_T_world_sensor, pose0.free_dof
+    # ICP on the best few (a closed-form pose from a few pairs can be a degree off: its agreement is then
+    # low although it is the right interpretation, DESIGN 6.3); the agreement after ICP decides, which also
+    # settles symmetric alternatives (90/180 deg turns of a wall or bay) on the whole predicted image
+    finalists = [x for x in scored[: params.max_icp] if x[0] >= params.icp_fraction * scored[0][0]]
+    outcomes = []  # (score after a quick ICP, hypothesis, T_init, T after the quick ICP, its prediction)
+    for k, (score, h, pred_h) in enumerate(finalists):
+        if k > 0 and outcomes[0][0] >= params.accept_agreement and \
+                outcomes[0][0] - score >= params.accept_margin:
+            break  # far ahead of every remaining hypothesis even after their ICP could help them
+        T_i = pred_h.T_world_sensor
+        T_f, pred_f = T_i, pred_h
+        if params.use_icp:
+            t0 = time.perf_counter()
+            ir = icp_refine(scan, pred_h, model, T_i, params.icp_screen)
+            timing["icp"] += time.perf_counter() - t0
+            if ir.ok:
+                t0 = time.perf_counter()
+                T_f = ir.T_world_sensor
+                pred_f = predict(model_simulator, scan.sensor, T_f, params.verify.stride)
+                timing["verification"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        after, _ = agreement(description, scan, pred_f, params.verify)
+        timing["verification"] += time.perf_counter() - t0
+        outcomes.append((after, h, T_i, T_f, pred_f))
+    outcomes.sort(key=lambda x: (-x[0], x[1].pose.free_dof))
+    after0, best, T_init, T_quick, pred_quick = outcomes[0]
+    ambiguous = ""
+    for other in outcomes[1:]:
+        if other[0] >= after0 - params.ambiguity_margin and not _close(other[3], T_quick, description):
+            ambiguous = f"ambiguous: another pose agrees {other[0]:.2f} vs {after0:.2f}"
+            break
+    # the winner's full ICP, against the model predicted visible from its quickly refined pose
+    T_final, cov, free = T_quick, best.pose.cov_T_world_sensor, best.pose.free_dof
     icp_note = ""
     if params.use_icp:
         t0 = time.perf_counter()
-        ir = icp_refine(scan, pred0, model, T_init, params.icp)
-        timing["icp"] = time.perf_counter() - t0
+        ir = icp_refine(scan, pred_quick, model, T_quick, params.icp)
+        timing["icp"] += time.perf_counter() - t0
         if ir.ok:
             T_final, cov, free = ir.T_world_sensor, ir.cov_T_world_sensor, min(free, ir.free_dof)
         else:
             icp_note = f"; ICP not applied: {ir.reason}"
+    pairs = {patch_ids[i]: (str(el.feature_id[e]) if e >= 0 else None) for i, e in best.pairs}
     # prediction at the final pose (shared with change detection) and the final confidence
     t0 = time.perf_counter()
     pred = predict(model_simulator, scan.sensor, T_final, 1)
@@ -241,11 +322,17 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
     for pid, fid in second.items():
         pairs[pid] = fid
     pairings = tuple(sorted(pairs.items(), key=lambda kv: kv[0]))
-    ok = conf >= params.min_confidence and free == 0
+    ok = conf >= params.min_confidence and free == 0 and not ambiguous and not icp_note
     reason = ""
-    if free > 0:
+    if icp_note:
+        reason = "pose not refined"
+    elif free > 0:
         reason = f"pose underconstrained: {free} free DOF"
     elif conf < params.min_confidence:
         reason = f"low confidence {conf:.2f} < {params.min_confidence}"
+    elif ambiguous:
+        reason = ambiguous
+    if res.stop_reason and not ok:
+        reason += f"; search stopped: {res.stop_reason}"
     return PoseResult(ok, reason + icp_note if not ok else "", T_final, T_init, cov, int(free), float(conf),
                       pairings, len(res.hypotheses), res.n_nodes, pred, timing)

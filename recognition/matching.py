@@ -7,7 +7,7 @@ side: :func:`model_elements` turns the a priori :class:`scenes.model.SceneModel`
 (world frame): plane faces and cylinder caps (PLAN), cylinder sides (CYL), cones (CONE), spheres (SPH).
 
 The search (:func:`match`) assigns each item a model element or a wildcard (spurious, changed or
-misclassified patch), depth first:
+misclassified patch). It is an interpretation tree cut at the depth where the pose is fixed (DESIGN 6.3):
 
 * unary constraints: type, invariants within tolerance (radius, half-angle), a visible length or extent
   no larger than the model's, an area no larger than the model face's; with a pose prior, the item moved
@@ -15,12 +15,18 @@ misclassified patch), depth first:
 * binary constraints against every earlier pair, tested for all candidates of a node at once on arrays:
   angles between normals/axes, distances between parallel planes, from axes and centres to planes,
   between axes, between centres;
-* items with the fewest candidates first; wildcards limited to ``max_wildcard_fraction`` of the items
-  plus ``extra_wildcards``; a node budget;
-* as soon as the pairs constrain all 6 DOF, the pose is solved in closed form (:mod:`recognition.pose`)
-  and every remaining item is tested against it (pose consistency and overlap with the element's
-  extent), taking its best consistent element or a wildcard without further branching: a leaf is a
-  *hypothesis*. Leaves that never reach 6 DOF are kept as underconstrained hypotheses.
+* items ordered by fewest candidates (tempered by size: small patches are the likeliest spurious); seeds
+  of 2-3 items are enumerated by their last item - (0,1), (0,2), (1,2), (0,3), ... - so a spurious item
+  costs a few seeds, never a whole subtree, and every item is tried early;
+* as soon as a seed's pairs constrain 6 DOF (a cheap model-frame test, then the closed form of
+  :mod:`recognition.pose`), every other item is tested against that pose at once, on flat arrays of all
+  (item, candidate) pairs, taking its best consistent element or a wildcard: a *leaf*. Leaves with more
+  than ``max_wildcard_fraction * n + extra_wildcards`` wildcards are dropped; a pose seen before is not
+  tested again;
+* a node budget and a time budget (CPU, with a wall-clock cap): the search stops with what it has and says
+  why (``MatchResult.stop_reason``); it also stops once a leaf explains ``stop_fraction`` of the items;
+* the best leaves are then refined with all their pairs (weighted Gauss-Newton) and completed again.
+  When no seed fixes 6 DOF, the largest partial assignments are returned as underconstrained hypotheses.
 
 Hypotheses are deduplicated by pose and ranked by the summed ``log(pixels)`` of their matched items; the
 caller verifies them (:mod:`recognition.verify`).
@@ -29,6 +35,7 @@ caller verifies them (:mod:`recognition.verify`).
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -73,10 +80,19 @@ class MatchParams:
     half_angle_tol_rad : floor of the cone half-angle tolerance.
     length_slack : visible lengths/extents may exceed the model's by this factor (segmentation bleed).
     max_wildcard_fraction, extra_wildcards : at most ``fraction * n_items + extra`` wildcards.
-    max_nodes : node budget of the search.
+    max_nodes : node budget of the search (the limit that binds on ordinary scenes: deterministic).
     max_hypotheses : at most this many hypotheses are returned (best score first).
-    bound_ratio : branch and bound: a branch whose best possible score (all items not yet wildcarded
-        matched) is below ``bound_ratio`` x the best fully constrained leaf so far is pruned.
+    max_time_s : CPU time budget of the search (seconds of this process), a safety net for pathological
+        inputs (the node budget binds first otherwise, so results do not depend on the machine's load): it
+        stops with the best hypotheses found so far ...
+    max_wall_s : ... and a wall-clock cap, whatever the load.
+    size_weight : items are taken in order of ``log(candidates + 1) - size_weight * log(pixels)`` (fewest
+        candidates first, small patches - the likeliest spurious - later).
+    max_seed_size : at most this many pairs in a seed (the pairs that fix the pose before the others are
+        tested against it).
+    stop_fraction : the search stops once a hypothesis explains this fraction of the items' summed weight
+        (after every pairing of the items seen so far has been tried, at least four items).
+    bound_ratio : kept for compatibility (the depth-limited search has no branch-and-bound step).
     pose_chi2_factor : a pose fit is accepted when its whitened cost <= factor x residual count (+ 10).
     length_m : characteristic length (m) for the free-DOF test; 0 = the median range of the items.
     max_free_sigma : a direction with a larger sigma (rad, or ``length_m`` units) counts as free.
@@ -95,9 +111,14 @@ class MatchParams:
     length_slack: float = 1.15
     max_wildcard_fraction: float = 0.4
     extra_wildcards: int = 2
-    max_nodes: int = 2000
+    max_nodes: int = 1500
     max_hypotheses: int = 12
     bound_ratio: float = 0.7
+    max_time_s: float = 1.0
+    max_wall_s: float = 2.0
+    size_weight: float = 0.5
+    max_seed_size: int = 3
+    stop_fraction: float = 0.9
     pose_chi2_factor: float = 9.0
     length_m: float = 0.0
     max_free_sigma: float = 0.1
@@ -106,10 +127,10 @@ class MatchParams:
 
     def __post_init__(self):
         for name in ("k_sigma", "dist_floor_rel", "radius_rel_tol", "length_slack", "pose_chi2_factor",
-                     "max_free_sigma"):
+                     "max_free_sigma", "max_time_s", "max_wall_s", "stop_fraction"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("min_pixels", "max_items", "max_nodes", "max_hypotheses"):
+        for name in ("min_pixels", "max_items", "max_nodes", "max_hypotheses", "max_seed_size"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0 <= self.max_wildcard_fraction <= 1:
@@ -533,7 +554,8 @@ class Hypothesis:
 
 @dataclass(frozen=True)
 class MatchResult:
-    """Hypotheses (best score first), the items and elements they index, and search statistics."""
+    """Hypotheses (best score first), the items and elements they index, and search statistics
+    (``stop_reason``: why the search stopped early - node or time budget - or "" when it completed)."""
 
     hypotheses: tuple[Hypothesis, ...]
     items: tuple[SceneItem, ...]
@@ -541,9 +563,144 @@ class MatchResult:
     n_nodes: int
     exhausted: bool
     candidates: tuple[int, ...] = field(default=())
+    stop_reason: str = ""
+
+
+class _FlatPairs:
+    """Every (item, candidate element) pair of the tree as flat arrays, so that a fixed pose is tested against
+    all remaining items and all their candidates at once (DESIGN 6.3: no per-pair numpy calls)."""
+
+    def __init__(self, items, el: ModelElements, cands):
+        self.el = el
+        self.n_items = len(items)
+        self.groups = []
+        for kind in KINDS:
+            it_idx = [i for i, it in enumerate(items) if it.kind == kind and len(cands[i])]
+            if not it_idx:
+                continue
+            ii = np.concatenate([np.full(len(cands[i]), i) for i in it_idx]).astype(np.intp)
+            ee = np.concatenate([cands[i] for i in it_idx]).astype(np.intp)
+            g = dict(kind=kind, item=ii, el=ee,
+                     d=np.array([items[i].direction for i in ii]).reshape(-1, 3),
+                     p=np.array([items[i].position for i in ii]).reshape(-1, 3),
+                     half_len=np.array([0.5 * items[i].length if np.isfinite(items[i].length) else 0.0
+                                        for i in ii]),
+                     radius=np.array([items[i].radius for i in ii]),
+                     ang_tol=np.array([items[i].angle_tol for i in ii]),
+                     dist_tol=np.array([items[i].dist_tol for i in ii]),
+                     dm=el.direction[ee], pm=el.position[ee], hs=el.half_size[ee], u=el.u_axis[ee],
+                     length=el.length[ee], start=el.start[ee], half_angle=el.half_angle[ee])
+            g["is_rect"] = np.isfinite(g["u"][:, 0])
+            g["u0"] = np.where(g["is_rect"][:, None], g["u"], 0.0)
+            g["v0"] = np.cross(g["dm"], g["u0"])
+            self.groups.append(g)
+
+    def best(self, T: np.ndarray, ang_scale: float, dist_scale: float, lever_sigma: float, centre: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+        """For every item: the best consistent element under ``T`` (-1: none) and its misfit (inf: none).
+
+        Tolerances are ``ang_scale`` x the item's angle tolerance and ``dist_scale`` x its distance tolerance
+        plus ``lever_sigma`` x the item's distance from ``centre`` (sensor frame; the seed pose's rotation
+        uncertainty moves far items more)."""
+        R, t = T[:3, :3], T[:3, 3]
+        best_e = np.full(self.n_items, -1, dtype=np.intp)
+        best_m = np.full(self.n_items, np.inf)
+        for g in self.groups:
+            d_w = g["d"] @ R.T
+            p_w = g["p"] @ R.T + t
+            dm, pm = g["dm"], g["pm"]
+            lever = np.linalg.norm(g["p"] - centre, axis=1)
+            atol = ang_scale * g["ang_tol"] + lever_sigma
+            dtol = dist_scale * g["dist_tol"] + lever_sigma * lever
+            w = p_w - pm
+            hl = g["half_len"]
+            kind = g["kind"]
+            if kind == "PLAN":
+                ang = np.arccos(np.clip(np.sum(dm * d_w, axis=1), -1, 1))
+                dist = np.abs(np.sum(dm * w, axis=1))
+                eu = np.abs(np.sum(w * g["u0"], axis=1)) - g["hs"][:, 0]
+                ev = np.abs(np.sum(w * g["v0"], axis=1)) - g["hs"][:, 1]
+                rad = np.linalg.norm(w - np.sum(w * dm, axis=1)[:, None] * dm, axis=1) - g["hs"][:, 0]
+                excess = np.where(g["is_rect"], np.maximum(eu, ev), rad)
+                inside = excess <= hl + dtol
+            elif kind in ("CYL", "CONE"):
+                c = np.sum(dm * d_w, axis=1)
+                ang = np.arccos(np.clip(np.abs(c) if kind == "CYL" else c, -1, 1))
+                along = np.sum(w * dm, axis=1)
+                dist = np.linalg.norm(w - along[:, None] * dm, axis=1)
+                if kind == "CYL":
+                    inside = np.abs(along) - 0.5 * g["length"] <= hl + dtol
+                else:
+                    lo, hi = g["start"], g["start"] + g["length"]
+                    inside = (along >= lo - hl - dtol) & (along <= hi + hl + dtol)
+                    dist = np.maximum(dist, np.abs(along * np.tan(g["half_angle"]) - g["radius"]))
+            else:
+                ang = np.zeros(len(dm))
+                dist = np.linalg.norm(w, axis=1)
+                inside = np.ones(len(dm), dtype=bool)
+            mis = np.maximum(ang / atol, dist / dtol)
+            mis = np.where((mis <= 1.0) & inside, mis, np.inf)
+            order = np.lexsort((mis, g["item"]))
+            ii = g["item"][order]
+            first = np.flatnonzero(np.r_[True, ii[1:] != ii[:-1]])
+            sel = order[first]
+            best_m[g["item"][sel]] = mis[sel]
+            best_e[g["item"][sel]] = np.where(np.isfinite(mis[sel]), g["el"][sel], -1)
+        return best_e, best_m
+
+
+def _seed_constrains(items, el: ModelElements, assigned: list[tuple[int, int]]) -> bool:
+    """Cheap test, in the model frame, of whether the pairs can constrain all 6 DOF (the pose solver has the
+    last word): two clearly non-parallel directions, or one direction family plus an off-axis lever (two
+    separated parallel axes, an axis and a point, two points); translation rows of full rank."""
+    dirs, rows, lines, pts = [], [], [], []
+    for i, e in assigned:
+        if e < 0:
+            continue
+        k = items[i].kind
+        d, p = el.direction[e], el.position[e]
+        if k == "PLAN":
+            dirs.append(d)
+            rows.append(d)
+        elif k in ("CYL", "CONE"):
+            dirs.append(d)
+            rows.append(d) if k == "CONE" else None
+            pp = np.cross(d, [1.0, 0, 0] if abs(d[0]) < 0.9 else [0, 1.0, 0])
+            pp /= np.linalg.norm(pp)
+            rows.extend([pp, np.cross(d, pp)])
+            lines.append((p, d))
+            if k == "CONE":
+                pts.append(p)
+        else:
+            rows.extend(np.eye(3))
+            pts.append(p)
+    if len(rows) < 3:
+        return False
+    if np.linalg.svd(np.array(rows), compute_uv=False)[2] < 0.25:
+        return False
+    D = np.array(dirs).reshape(-1, 3)
+    if len(D) >= 2:
+        c = np.abs(D @ D.T)
+        if np.min(c) < math.cos(math.radians(14.0)):
+            return True
+    # a single direction family (or none): the roll needs a lever
+    a = D[0] if len(D) else None
+    levers = [q2 - q1 for (q1, _), (q2, _) in zip(lines, lines[1:], strict=False)]
+    levers += [q - l[0] for l in lines for q in pts]
+    levers += [q2 - q1 for q1, q2 in zip(pts, pts[1:], strict=False)]
+    for v in levers:
+        if a is not None:
+            v = v - (v @ a) * a
+        if np.linalg.norm(v) > 0.05:
+            return True
+    return False
 
 
 class _Search:
+    """Depth-limited interpretation tree: seeds of 2-4 consistent pairs that fix the pose (items taken in
+    order of fewest candidates, item tuples enumerated by their last item so every item is tried early),
+    each seed's closed-form pose tested against every other item at once (:class:`_FlatPairs`)."""
+
     def __init__(self, items, el, cands, params: MatchParams, length_m: float):
         self.items, self.el, self.cands, self.p = items, el, cands, params
         self.length_m = length_m
@@ -556,83 +713,117 @@ class _Search:
         self._n_poses = 0
         self.dedupe_angle = math.radians(2.0)
         self.dedupe_dist = 0.02 * length_m
-        self.order = sorted(range(len(items)), key=lambda i: (len(cands[i]), -items[i].n_pixels))
+        # fewest candidates first, tempered by size: a small patch is the likeliest to be spurious or
+        # misclassified, and a seed that starts with it wastes the budget
+        self.order = sorted(range(len(items)), key=lambda i: (math.log(len(cands[i]) + 1.0)
+                                                              - params.size_weight * math.log(items[i].n_pixels),
+                                                              -items[i].n_pixels))
+        self.flat = _FlatPairs(items, el, cands)
+        self.stop_reason = ""
+        self.t0 = time.perf_counter()
+        self.c0 = time.process_time()
+        self.partial: list[tuple[int, list[tuple[int, int]]]] = []  # (dims, pairs) when nothing fixes 6 DOF
 
-    def pose(self, assigned: list[tuple[int, int]], T_init=None) -> list[PoseEstimate]:
+    def out_of_budget(self) -> bool:
+        if self.stop_reason:
+            return True
+        if self.n_nodes >= self.p.max_nodes:
+            self.stop_reason = f"node budget ({self.p.max_nodes}) reached"
+        elif time.process_time() - self.c0 > self.p.max_time_s:
+            self.stop_reason = f"time budget ({self.p.max_time_s:g} s CPU) reached"
+        elif time.perf_counter() - self.t0 > self.p.max_wall_s:
+            self.stop_reason = f"time budget ({self.p.max_wall_s:g} s wall) reached"
+        return bool(self.stop_reason)
+
+    def pose(self, assigned: list[tuple[int, int]], T_init=None, iterations=None, assess=True,
+             chi2_slack: float = 1.0) -> list[PoseEstimate]:
         pairs = [make_pair(self.items[i], self.el, e) for i, e in assigned if e >= 0]
         hyps = pose_hypotheses(pairs, length_m=self.length_m, max_sigma=self.p.max_free_sigma, T_init=T_init,
-                               iterations=1 if T_init is None else 3)
-        out = []
-        for h in hyps:
-            if h.ok and h.cost <= self.p.pose_chi2_factor * h.n_residuals + 10.0:
-                out.append(h)
-        return out
+                               iterations=(1 if T_init is None else 3) if iterations is None else iterations,
+                               max_signs=4, assess=assess)
+        return [h for h in hyps if h.ok and h.cost <= chi2_slack * (self.p.pose_chi2_factor * h.n_residuals + 10.0)]
 
     def run(self):
-        self._dfs(0, [], 0, 0.0)
+        order = self.order
+        n = len(order)
+        max_depth = self.p.max_seed_size
+        # item tuples (positions in ``order``) by their last position: (0,1), (0,2), (1,2), (0,3), ...
+        for last in range(1, n):
+            for first in range(last):
+                self._seed([order[first], order[last]], [], max_depth, last)
+                if self.out_of_budget():
+                    return
+            if self.best_score >= self.p.stop_fraction * self.total_weight and len(self.leaves) > 0 \
+                    and last >= min(n - 1, 3):
+                self.stop_reason = ""  # explained almost everything: done
+                return
 
-    def _dfs(self, depth: int, assigned: list[tuple[int, int]], n_wild: int, w_wild: float) -> None:
-        if self.n_nodes >= self.p.max_nodes:
+    def _seed(self, want: list[int], assigned: list[tuple[int, int]], max_depth: int, last: int) -> None:
+        """Assign ``want[0]`` (then the rest) every consistent candidate; when the pairs fix 6 DOF, test the
+        pose; otherwise extend with one more item positioned after ``last`` in the order (depth-limited)."""
+        if self.out_of_budget():
             return
-        if self.total_weight - w_wild < self.p.bound_ratio * self.best_score:
-            return  # branch and bound: cannot come near the best leaf any more
-        self.n_nodes += 1
-        if depth == len(self.order):
-            if any(e >= 0 for _, e in assigned):
-                for h in self.pose(assigned)[:2]:
-                    self._leaf(assigned, h)
+        if not want:
+            if len(assigned) >= max_depth:
+                return
+            # add a third (fourth) item after the last one used
+            for pos in range(last + 1, len(self.order)):
+                self._seed([self.order[pos]], assigned, max_depth, pos)
+                if self.out_of_budget():
+                    return
             return
-        i = self.order[depth]
+        i = want[0]
         item = self.items[i]
         cand = self.cands[i]
         for j, e in assigned:
-            if e < 0 or len(cand) == 0:
-                continue
+            if len(cand) == 0:
+                break
             cand = cand[binary_ok(self.items[j], e, item, cand, self.el)]
+        self.n_nodes += 1
         for e in cand:
-            if self.n_nodes >= self.p.max_nodes:
+            if self.out_of_budget():
                 return
             new = assigned + [(i, int(e))]
-            dims = sum(_DIMS[self.items[j].kind] for j, x in new if x >= 0)
-            if dims >= 6:
-                hyps = self.pose(new)
-                if not hyps:
+            if len(want) > 1:
+                self._seed(want[1:], new, max_depth, last)
+                continue
+            if _seed_constrains(self.items, self.el, new):
+                self.n_nodes += 1
+                hyps = self.pose(new, iterations=0, assess=False, chi2_slack=3.0)  # closed form; finish() assesses
+                if hyps:
+                    for h in hyps[:2]:
+                        self._complete(new, h)
                     continue
-                fixed = [h for h in hyps if h.free_dof == 0]
-                if fixed:
-                    self.n_nodes += 1
-                    for h in fixed[:4]:
-                        self._extend(new, depth + 1, h, n_wild)
-                    continue
-            self._dfs(depth + 1, new, n_wild, w_wild)
-        if n_wild < self.max_wild:
-            self._dfs(depth + 1, assigned + [(i, -1)], n_wild + 1, w_wild + item.weight)
+            if len(new) < max_depth:
+                self._seed([], new, max_depth, last)
+            else:
+                dims = sum(_DIMS[self.items[k].kind] for k, _ in new)
+                self.partial.append((dims, new))
 
-    def _extend(self, assigned, depth, pose: PoseEstimate, n_wild: int) -> None:
-        """Greedy completion under a fixed pose: every remaining item takes its best consistent element."""
+    def _complete(self, seed: list[tuple[int, int]], pose: PoseEstimate) -> None:
+        """Every other item takes its best element consistent with the seed's pose, all at once."""
         T = pose.T_world_sensor
         if self._seen(T):
             return
-        out = list(assigned)
-        for i in self.order[depth:]:
-            item = self.items[i]
-            cand = self.cands[i]
-            if len(cand):
-                mis = pose_consistency(item, self.el, cand, T, 2.0 * item.angle_tol, 2.0 * item.dist_tol)
-                b = int(np.argmin(mis))
-                if np.isfinite(mis[b]):
-                    out.append((i, int(cand[b])))
-                    continue
-            out.append((i, -1))
-        n_w = sum(1 for _, e in out if e < 0)
-        if n_w > self.max_wild + len(self.order) - depth:
+        seed_items = [i for i, _ in seed]
+        # rotation uncertainty of a seed pose: about the worst direction sigma of its items
+        s_rot = max(self.items[i].sigma_angle for i in seed_items)
+        centre = np.mean([self.items[i].position for i in seed_items], axis=0)
+        best_e, _ = self.flat.best(T, 2.0, 2.0, 3.0 * s_rot, centre)
+        for i, e in seed:
+            best_e[i] = e
+        n_w = int(np.sum(best_e < 0))
+        if n_w > self.max_wild:
+            self._remember(T)  # too many items unexplained: not a leaf, but do not test this pose again
             return
-        final = self.pose(out, T_init=T)
-        if not final:
-            # the extension broke the fit: keep the seed pairs only
-            out = list(assigned) + [(i, -1) for i in self.order[depth:]]
-            final = [pose]
-        self._leaf(out, final[0])
+        out = [(i, int(best_e[i])) for i in range(len(self.items))]
+        self._leaf(out, pose)
+
+    def _remember(self, T: np.ndarray) -> None:
+        if self._n_poses == len(self._poses):
+            self._poses = np.concatenate([self._poses, np.zeros_like(self._poses)])
+        self._poses[self._n_poses] = T
+        self._n_poses += 1
 
     def _seen(self, T: np.ndarray) -> bool:
         """Whether a leaf with (nearly) the same pose exists (all leaves tested at once)."""
@@ -648,12 +839,46 @@ class _Search:
         matched = [i for i, e in assigned if e >= 0]
         score = float(sum(self.items[i].weight for i in matched))
         self.leaves.append(Hypothesis(tuple(sorted(assigned)), pose, score, len(matched)))
-        if self._n_poses == len(self._poses):
-            self._poses = np.concatenate([self._poses, np.zeros_like(self._poses)])
-        self._poses[self._n_poses] = pose.T_world_sensor
-        self._n_poses += 1
+        self._remember(pose.T_world_sensor)
         if pose.free_dof == 0:
             self.best_score = max(self.best_score, score)
+
+    def finish(self, max_hypotheses: int) -> list[Hypothesis]:
+        """The best leaves refined with all their pairs (a second completion under the refined pose); when no
+        seed fixed 6 DOF, the largest partial assignments as underconstrained hypotheses."""
+        leaves = sorted(self.leaves, key=lambda h: (-h.score, h.pose.cost))
+        out: list[Hypothesis] = []
+        for h in leaves[: 2 * max_hypotheses]:
+            T = h.pose.T_world_sensor
+            ref = self.pose(list(h.pairs), T_init=T)
+            if not ref:
+                out.append(h)
+                continue
+            pose = ref[0]
+            seed_items = [i for i, e in h.pairs if e >= 0]
+            centre = np.mean([self.items[i].position for i in seed_items], axis=0)
+            best_e, _ = self.flat.best(pose.T_world_sensor, 2.0, 2.0, 0.0, centre)
+            pairs = [(i, int(best_e[i])) for i in range(len(self.items))]
+            if pairs != list(h.pairs) and sum(e >= 0 for _, e in pairs) >= h.n_matched:
+                ref2 = self.pose(pairs, T_init=pose.T_world_sensor)
+                if ref2 and ref2[0].free_dof == 0:
+                    pose = ref2[0]
+                else:
+                    pairs = list(h.pairs)
+            else:
+                pairs = list(h.pairs)
+            matched = [i for i, e in pairs if e >= 0]
+            out.append(Hypothesis(tuple(pairs), pose, float(sum(self.items[i].weight for i in matched)),
+                                  len(matched)))
+        if not out and self.partial:
+            self.partial.sort(key=lambda x: -x[0])
+            for _, pairs in self.partial[: max_hypotheses]:
+                hyps = self.pose(pairs, iterations=3)
+                if hyps:
+                    full = pairs + [(i, -1) for i in range(len(self.items)) if i not in {k for k, _ in pairs}]
+                    out.append(Hypothesis(tuple(sorted(full)), hyps[0],
+                                          float(sum(self.items[i].weight for i, _ in pairs)), len(pairs)))
+        return out
 
 
 def _same_pose(a: np.ndarray, b: np.ndarray, angle_rad: float, dist_m: float) -> bool:
@@ -690,7 +915,7 @@ def match(description: SceneDescription, model: SceneModel | ModelElements, pixe
     length_m = params.length_m or float(np.median([it.range_m for it in items]))
     s = _Search(items, el, cands, params, length_m)
     s.run()
-    leaves = sorted(s.leaves, key=lambda h: (-h.score, h.pose.free_dof, h.pose.cost))
+    leaves = sorted(s.finish(params.max_hypotheses), key=lambda h: (-h.score, h.pose.free_dof, h.pose.cost))
     uniq: list[Hypothesis] = []
     for h in leaves:
         T = h.pose.T_world_sensor
@@ -699,8 +924,8 @@ def match(description: SceneDescription, model: SceneModel | ModelElements, pixe
         uniq.append(h)
         if len(uniq) >= params.max_hypotheses:
             break
-    return MatchResult(tuple(uniq), tuple(items), el, s.n_nodes, s.n_nodes < params.max_nodes,
-                       tuple(len(c) for c in cands))
+    return MatchResult(tuple(uniq), tuple(items), el, s.n_nodes, not s.stop_reason,
+                       tuple(len(c) for c in cands), s.stop_reason)
 
 
 def given_match(description: SceneDescription, model: SceneModel | ModelElements, pixel_pitch_rad: float,

@@ -395,7 +395,7 @@ def _refine(rows, T: np.ndarray, iterations: int) -> tuple[np.ndarray, np.ndarra
     return T, r, J
 
 
-def _sign_sets(pairs, min_cos: float = 0.2) -> list[tuple[int, ...]]:
+def _sign_sets(pairs, min_cos: float = 0.2, max_sets: int = 64) -> list[tuple[int, ...]]:
     """Sign assignments of the unsigned axes that agree with the signs the pairs imply among themselves.
 
     Rotations preserve dot products, so for two directions with ``|a_s . b_s| >= min_cos`` the product of
@@ -409,28 +409,52 @@ def _sign_sets(pairs, min_cos: float = 0.2) -> list[tuple[int, ...]]:
             dirs.append((p.a_s, p.a_m))
         else:
             dirs.append(None)
-    unsigned = [i for i, p in enumerate(pairs) if isinstance(p, AxisPair) and not p.signed]
-    relations = []
+    unsigned = {i for i, p in enumerate(pairs) if isinstance(p, AxisPair) and not p.signed}
+    # parity graph: an edge (j, rel) says sign_i * sign_j must equal rel
+    adj: dict[int, list[tuple[int, int]]] = {i: [] for i in range(len(pairs))}
     for i, j in itertools.combinations(range(len(pairs)), 2):
         if dirs[i] is None or dirs[j] is None or (i not in unsigned and j not in unsigned):
             continue
         cs, cm = float(dirs[i][0] @ dirs[j][0]), float(dirs[i][1] @ dirs[j][1])
         if abs(cs) >= min_cos and abs(cm) >= min_cos:
-            relations.append((i, j, 1 if cs * cm > 0 else -1))
-    base = [1] * len(pairs)
+            rel = 1 if cs * cm > 0 else -1
+            adj[i].append((j, rel))
+            adj[j].append((i, rel))
+    # connected components by breadth-first propagation (linear, not 2^n): a component holding a signed
+    # direction is fixed; every other component has two sign choices (all of its members flip together)
+    sign = [1] * len(pairs)
+    seen: set[int] = set()
+    free_components: list[list[int]] = []
+    for root in sorted(range(len(pairs)), key=lambda k: k in unsigned):  # signed roots first
+        if root in seen:
+            continue
+        seen.add(root)
+        comp, queue = [root], [root]
+        while queue:
+            k = queue.pop()
+            for j, rel in adj[k]:
+                if j not in seen and j in unsigned:  # signed directions keep +1 (each is a root of its own)
+                    seen.add(j)
+                    sign[j] = sign[k] * rel
+                    comp.append(j)
+                    queue.append(j)
+        if root in unsigned and all(k in unsigned for k in comp):
+            free_components.append(comp)
     out = []
-    for combo in itertools.product((1, -1), repeat=len(unsigned)):
-        s = list(base)
-        for i, v in zip(unsigned, combo, strict=True):
-            s[i] = v
-        if all(s[i] * s[j] == rel for i, j, rel in relations):
-            out.append(tuple(s))
-    return out or [tuple(base)]
+    for combo in itertools.product((1, -1), repeat=len(free_components)):
+        s = list(sign)
+        for comp, v in zip(free_components, combo, strict=True):
+            for k in comp:
+                s[k] = sign[k] * v
+        out.append(tuple(s))
+        if len(out) >= max_sets:
+            break
+    return out or [tuple(sign)]
 
 
 def pose_hypotheses(pairs: tuple[Pair, ...] | list[Pair], *, iterations: int = 5, length_m: float = 1.0,
-                    max_sigma: float = 0.1, max_signs: int = 64, T_init: np.ndarray | None = None
-                    ) -> list[PoseEstimate]:
+                    max_sigma: float = 0.1, max_signs: int = 64, T_init: np.ndarray | None = None,
+                    assess: bool = True) -> list[PoseEstimate]:
     """Every pose the pairs allow under the sign assignments of their unsigned axes, best first.
 
     Parameters
@@ -443,6 +467,8 @@ def pose_hypotheses(pairs: tuple[Pair, ...] | list[Pair], *, iterations: int = 5
     T_init : optional (4, 4) pose used to pick, for each unsigned axis, the sign it implies, and to fill
         the free directions (the rotation about a single axis, a translation along it) instead of the
         minimum-norm choice.
+    assess : when False (a quick pose inside a search), the free DOF and the covariance are not computed:
+        ``free_dof`` is reported as 0 and ``cov_T_world_sensor`` as None.
 
     Returns
     -------
@@ -457,7 +483,7 @@ def pose_hypotheses(pairs: tuple[Pair, ...] | list[Pair], *, iterations: int = 5
                       for p in pairs)
         sign_sets = [signs]
     else:
-        sign_sets = _sign_sets(pairs)[:max_signs]
+        sign_sets = _sign_sets(pairs, max_sets=max_signs)
     out: list[PoseEstimate] = []
     for signs in sign_sets:
         src, dst, w = _directions(pairs, signs)
@@ -483,6 +509,9 @@ def pose_hypotheses(pairs: tuple[Pair, ...] | list[Pair], *, iterations: int = 5
             t = t + N @ (N.T @ (T_init[:3, 3] - t))
         T = _make_T(R, t)
         T, r, J = _refine(rows, T, iterations)
+        if not assess:
+            out.append(PoseEstimate(True, "", T, None, 0, np.zeros((6, 0)), float(r @ r), signs, len(r)))
+            continue
         free, basis = free_dof_of(J, length_m, max_sigma)
         info = J.T @ J
         cov = np.linalg.pinv(info, rcond=1e-12, hermitian=True)

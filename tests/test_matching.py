@@ -95,3 +95,76 @@ def test_model_elements_cover_faces_caps_and_sides():
     el = model_elements(_model())
     assert set(el.kind) == {"PLAN", "CYL", "SPH"}
     assert len(el.of_kind("CYL")) == 7 and len(el.of_kind("PLAN")) == 3 + 2 * 7
+
+
+def _rot_z(T: np.ndarray, deg: float) -> np.ndarray:
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    Rz = np.eye(4)
+    Rz[:2, :2] = [[c, -s], [s, c]]
+    return Rz @ T
+
+
+def _angle_deg(A, B):
+    return np.degrees(np.arccos(np.clip((np.trace(A[:3, :3].T @ B[:3, :3]) - 1) / 2, -1, 1)))
+
+
+def test_symmetric_bay_generates_both_alternatives():
+    """A rectangular bay is symmetric under a 180 deg turn: the tree must return both poses (verification
+    against the predicted image decides between them, DESIGN 6.3); an asymmetric pipe ranks the right one."""
+    floor = Plane("floor", centre=[0, 0, 0], normal=[0, 0, 1], u_axis=[1, 0, 0], half_size=(4, 3))
+    walls = [Plane("wn", centre=[0, 3, 1.5], normal=[0, -1, 0], u_axis=[1, 0, 0], half_size=(4, 1.5)),
+             Plane("ws", centre=[0, -3, 1.5], normal=[0, 1, 0], u_axis=[1, 0, 0], half_size=(4, 1.5)),
+             Plane("we", centre=[4, 0, 1.5], normal=[-1, 0, 0], u_axis=[0, 1, 0], half_size=(3, 1.5)),
+             Plane("ww", centre=[-4, 0, 1.5], normal=[1, 0, 0], u_axis=[0, 1, 0], half_size=(3, 1.5))]
+    pipe = Cylinder("pipe", centre=[2.5, 2.0, 1.0], axis=[0, 0, 1], radius=0.1, length=2.0)
+    model = SceneModel("bay", (Object("room", "wall", (floor, *walls)), Object("p", "pipe_run", (pipe,))))
+    T_ws = look_at(np.array([0.0, 0.0, 1.6]), np.array([2.0, 1.5, 0.8]))
+    T_sw = np.linalg.inv(T_ws)
+    rng = np.random.default_rng(1)
+    eye = T_ws[:3, 3]
+    seen = [floor, walls[0], walls[2]]
+    patches = [_patch(k, f, T_sw, rng, n=800, eye=eye) for k, f in enumerate(seen)]
+    desc = SceneDescription(tuple(patches), np.zeros((1, 1), np.int32), None, np.zeros((1, 1)), {})
+    res = match(desc, model, 1e-3, MatchParams(min_pixels=50))
+    poses = [h.pose.T_world_sensor for h in res.hypotheses if h.pose.free_dof == 0]
+    T_alt = _rot_z(T_ws, 180.0)
+    assert any(_angle_deg(T, T_ws) < 0.5 and np.linalg.norm(T[:3, 3] - T_ws[:3, 3]) < 0.05 for T in poses)
+    assert any(_angle_deg(T, T_alt) < 0.5 and np.linalg.norm(T[:3, 3] - T_alt[:3, 3]) < 0.05 for T in poses)
+    # with the asymmetric pipe in view the right pose explains more and ranks first
+    patches.append(_patch(len(patches), pipe, T_sw, rng, n=800, eye=eye))
+    desc = SceneDescription(tuple(patches), np.zeros((1, 1), np.int32), None, np.zeros((1, 1)), {})
+    best = match(desc, model, 1e-3, MatchParams(min_pixels=50)).hypotheses[0].pose.T_world_sensor
+    assert _angle_deg(best, T_ws) < 0.5 and np.linalg.norm(best[:3, 3] - T_ws[:3, 3]) < 0.05
+
+
+def test_pathological_search_stops_within_its_time_budget():
+    """Many look-alike pipes and planes in the model, many spurious patches in the scene: the search stops
+    on its time budget (not after minutes) and says so."""
+    import time
+
+    rng = np.random.default_rng(5)
+    feats = [Plane(f"p{k}", centre=rng.uniform(-5, 5, 3), normal=[0, 0, 1] if k % 3 == 0 else [1, 0, 0]
+                   if k % 3 == 1 else [0, 1, 0], u_axis=[0, 1, 0] if k % 3 == 1 else [1, 0, 0], half_size=(3, 3))
+             for k in range(40)]
+    feats += [Cylinder(f"c{k}", centre=rng.uniform(-5, 5, 3), axis=np.eye(3)[k % 3], radius=0.05, length=3.0)
+              for k in range(60)]
+    model = SceneModel("maze", (Object("all", "wall", tuple(feats)),))
+    T_ws = look_at(np.array([0.0, -8.0, 1.5]), np.array([0.0, 0.0, 0.5]))
+    T_sw = np.linalg.inv(T_ws)
+    eye = T_ws[:3, 3]
+    junk = [Cylinder(f"j{k}", centre=rng.uniform(-2, 2, 3), axis=rng.normal(size=3), radius=0.05, length=1.0)
+            for k in range(14)]
+    for k in range(10):
+        n = rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        u = np.cross(n, [0.0, 0.0, 1.0])
+        junk.append(Plane(f"q{k}", centre=rng.uniform(-2, 2, 3), normal=n, u_axis=u / np.linalg.norm(u),
+                          half_size=(0.5, 0.5)))
+    patches = [_patch(k, f, T_sw, rng, n=300, eye=eye) for k, f in enumerate(junk)]
+    desc = SceneDescription(tuple(patches), np.zeros((1, 1), np.int32), None, np.zeros((1, 1)), {})
+    params = MatchParams(min_pixels=50, max_nodes=10**9, max_time_s=0.3, max_wall_s=1.0)
+    t0 = time.perf_counter()
+    res = match(desc, model, 1e-3, params)
+    wall = time.perf_counter() - t0
+    assert "time budget" in res.stop_reason and not res.exhausted
+    assert wall < 3.0  # the budget plus model/item preparation and the final refinement

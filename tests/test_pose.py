@@ -177,3 +177,21 @@ def test_pose_section_handles_failure_and_success():
     assert not sec["success"] and sec["rotation_error_deg"] is None and sec["initial"]["success"] is False
     with pytest.raises(ValueError, match="shape"):
         rotation_error_deg(np.eye(2), np.eye(3))
+
+
+def test_many_unsigned_axes_do_not_blow_up():
+    """Sign assignments follow from the pairs' mutual angles (linear), not from 2^n enumeration: 24 pipes."""
+    import time
+
+    T = _random_T(7)
+    m = _Maker(T)
+    rng = np.random.default_rng(3)
+    pairs = [m.plane([0, 0, 1], 0.0), m.plane([1, 0, 0], -2.0)]
+    for k in range(24):
+        a = np.eye(3)[k % 3] + 0.3 * np.eye(3)[(k + 1) % 3]
+        pairs.append(m.axis(a, rng.normal(size=3), flip=-1 if k % 2 else 1))
+    t0 = time.process_time()
+    est = estimate_pose(pairs)
+    assert time.process_time() - t0 < 2.0
+    assert est.ok and est.free_dof == 0
+    assert rotation_error_deg(est.T_world_sensor[:3, :3], T[:3, :3]) < 1e-3
