@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml scripts/system-deps.sh
 	@bash scripts/system-deps.sh
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	@$(PY) -m pip install -q --disable-pip-version-check --upgrade pip
-	@$(PY) -m pip install -q --disable-pip-version-check -e ".[test]"
+	@$(PY) -m pip install -q --disable-pip-version-check -e ".[test,peers]"
 	@touch $(STAMP)
 
 bench: $(STAMP)

@@ -150,17 +150,23 @@ def suite_from_dict(data: Any, source: str = "<suite>", base: Path = Path(".")) 
     timeout_s = root.number("timeout_s", 300.0, positive=True)
     methods_f = root.sub("methods", {"core": {}})
     methods: dict[str, dict[str, Any]] = {}
+    from recognition.peers import MISSING, PEERS
+
     for m in methods_f.data:
-        if m not in METHODS:
-            raise methods_f.error(str(m), f"unknown method (known: {', '.join(METHODS)})")
+        if m not in METHODS and m not in PEERS:
+            why = f" ({MISSING[m]})" if m in MISSING else ""
+            raise methods_f.error(str(m), f"unknown method{why} (known: {', '.join((*METHODS, *PEERS))})")
         params = methods_f.raw(m)
         if params is not None and not isinstance(params, dict):
             raise methods_f.error(str(m), "expected a mapping of parameters")
         # validated here, not at each trial: a typo would otherwise fail every trial of the run one by one
         pf = Fields(params or {}, source, methods_f.child_path(str(m)))
-        if pf.has("classifier"):
-            pf.string("classifier", choices=CLASSIFIERS)
-        pf.check_unknown(("classifier",))
+        if m in PEERS:
+            pf.check_unknown(tuple(PEERS[m].defaults))
+        else:
+            if pf.has("classifier"):
+                pf.string("classifier", choices=CLASSIFIERS)
+            pf.check_unknown(("classifier",))
         methods[m] = dict(params or {})
     if "core" not in methods:
         raise methods_f.error(None, "the suite must run the 'core' method")

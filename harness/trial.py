@@ -23,6 +23,7 @@ from evaluation.patches import classification_section, segmentation_section
 from harness.suite import TrialPlan, TrialSpec
 from recognition.change import detect_changes
 from recognition.describe import DescribeParams, core_sigma, describe
+from recognition.peers import PEERS
 from recognition.predict import ModelPredictor
 from scenes.model import SceneModel
 from scenes.perturb import ChangeTruth, PerturbationSpec, perturb
@@ -152,7 +153,12 @@ def run_trial(spec: TrialSpec, plan: TrialPlan, prepared: PreparedScene,
     context = TrialContext(scan, truth, prepared)
     method_records = {}
     core_description = None
-    for name, params in plan.methods.items():
+    for name, params in plan.methods.items():  # core first (the suite requires it): peers reuse its stages
+        peer = PEERS.get(name)
+        if peer is not None:
+            method_records[name], _ = run_pipeline(context, method_params("core", plan.methods["core"]),
+                                                   core=core_description, peer=(peer, params))
+            continue
         shared = core_description.segmentation if core_description is not None else None
         method_records[name], desc = run_pipeline(context, method_params(name, params), segmentation=shared)
         if core_description is None:
@@ -212,15 +218,20 @@ class TrialContext:
 
 
 def run_pipeline(ctx: TrialContext, params: DescribeParams, segmentation=None, oracle: str | None = None,
-                 core=None) -> tuple[dict[str, Any], Any]:
-    """Run the core's stages on the scan, with at most one stage replaced by its oracle, and evaluate each.
+                 core=None, peer: tuple | None = None) -> tuple[dict[str, Any], Any]:
+    """Run the core's stages on the scan, with at most one stage replaced by its oracle or by a peer method
+    (``(Peer, params)``), and evaluate each.
 
-    ``segmentation`` (or, for oracles, the core's description ``core``) is reused where the stages before
-    the one that differs are the same: its time is then reported once, by the run that computed it.
+    ``segmentation`` (or, for oracles and peers, the core's description ``core``) is reused where the stages
+    before the one that differs are the same: its time is then reported once, by the run that computed it.
     """
     scan, truth, prepared = ctx.scan, ctx.truth, ctx.prepared
     timing: dict[str, float | None] = dict.fromkeys(STAGES[1:])
-    if oracle in ("pose", "pairing") and core is not None:
+    if peer is not None and peer[0].replaces == "description":
+        t0 = time.perf_counter()
+        desc = peer[0].run(scan, peer[1])
+        timing["segmentation"] = time.perf_counter() - t0  # a primitive detector segments and classifies at once
+    elif (oracle in ("pose", "pairing") or peer is not None) and core is not None:
         desc = core
     else:
         if oracle == "segmentation":
@@ -239,7 +250,7 @@ def run_pipeline(ctx: TrialContext, params: DescribeParams, segmentation=None, o
         "change": None,
         "timing_s": timing,
     }
-    pose = estimate_pose(ctx, desc, oracle)
+    pose = estimate_pose(ctx, desc, oracle, peer if peer is not None and peer[0].replaces == "pose" else None)
     if pose is None:
         return record, desc
     T_est, cov, predicted, pose_record, pose_timing = pose
@@ -247,17 +258,21 @@ def run_pipeline(ctx: TrialContext, params: DescribeParams, segmentation=None, o
     timing.update(pose_timing)
     if T_est is not None:
         t0 = time.perf_counter()
-        result = detect_changes(desc, scan, prepared.apriori, T_est, cov, predicted=predicted,
-                                predictor=prepared.predictor)
+        if peer is not None and peer[0].replaces == "change":
+            result = peer[0].run(desc, scan, prepared.apriori, T_est, cov, prepared.predictor, peer[1],
+                                 predicted=predicted)
+        else:
+            result = detect_changes(desc, scan, prepared.apriori, T_est, cov, predicted=predicted,
+                                    predictor=prepared.predictor)
         timing["change"] = time.perf_counter() - t0 - result.timing_s.get("predict", 0.0)
         record["change"] = change_section(result, truth, prepared.change_truth, ctx.apriori_at_truth, ctx.object_of)
     return record, desc
 
 
-def estimate_pose(ctx: TrialContext, desc, oracle: str | None):
+def estimate_pose(ctx: TrialContext, desc, oracle: str | None, peer: tuple | None = None):
     """``(T_world_sensor or None, covariance, predicted image, pose record, timings)``, or None when the
     pose stage is not built yet. The ``pose`` oracle gives the true pose; ``pairing`` gives the truth
-    correspondences to the pose stage."""
+    correspondences to the pose stage; a registration peer replaces the core's localisation."""
     truth = ctx.truth
     if oracle == "pose":
         T = truth.T_world_sensor
@@ -266,9 +281,12 @@ def estimate_pose(ctx: TrialContext, desc, oracle: str | None):
         return T, np.zeros((6, 6)), None, rec, {}
     if localise is None:
         return None
-    pairings = truth_pairings(desc, truth, ctx.prepared.change_truth) if oracle == "pairing" else None
-    result = localise(desc, ctx.scan, ctx.prepared.apriori, LocaliseParams(), ctx.prepared.predictor.simulator,
-                      pairings=pairings)
+    if peer is not None:
+        result = peer[0].run(desc, ctx.scan, ctx.prepared.apriori, peer[1], ctx.prepared.predictor)
+    else:
+        pairings = truth_pairings(desc, truth, ctx.prepared.change_truth) if oracle == "pairing" else None
+        result = localise(desc, ctx.scan, ctx.prepared.apriori, LocaliseParams(), ctx.prepared.predictor.simulator,
+                          pairings=pairings)
     rec = pose_section(result, truth.T_world_sensor, ctx.median_range, ctx.constrained,
                        ctx.prepared.model_points)
     t = result.timing_s
