@@ -196,8 +196,11 @@ def _primitive_world(patch, T: np.ndarray):
         return {"normal": R @ prim.normal, "normal_sigma": prim.normal_sigma_rad,
                 "centroid": R @ patch.points.mean(axis=0) + t}
     if label == "CONE":
+        # a slender cone is also compared as a cylinder of its radius at the patch (cylinders and slender
+        # cones are confused under noise)
         return {"apex": R @ prim.apex + t, "axis": R @ prim.axis, "half_angle": prim.half_angle,
-                "axis_sigma": prim.axis_sigma_rad}
+                "axis_sigma": prim.axis_sigma_rad, "point": R @ prim.point + t, "radius": prim.radius_at_point,
+                "radius_sigma": math.nan}
     return None
 
 
@@ -293,6 +296,9 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
         prev = results[fid]
         cand = [p for p in description.patches if p.id not in claimed and p.n_pixels >= params.min_pixels
                 and _compatible(p.label, f)]
+        # the neighbourhood covers a move of the feature's object: a translation plus a turn of up to the loose
+        # angle about the object's centre, which moves the ends of a long feature further than its middle
+        reach = loose_d + math.sin(math.radians(params.loose_angle_deg)) * f.size()
         verdict = None
         best = math.inf
         for p in cand:
@@ -305,7 +311,7 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
                 if dist < best:
                     best, verdict = dist, FeatureChange("altered", None, (p.id,), prev.found, prev.revealed,
                                                         prev.occluded, "same place, other shape parameters")
-            elif same is not False and dist <= loose_d and _within_angle(f, prim, params.loose_angle_deg):
+            elif same is not False and dist <= reach and _within_angle(f, prim, params.loose_angle_deg):
                 if dist < best:
                     best, verdict = dist, FeatureChange("moved", dist, (p.id,), prev.found, prev.revealed,
                                                         prev.occluded, "found in the loose neighbourhood")

@@ -25,7 +25,13 @@ geometric fit is within 0.1 % at mock-up and factory noise (median -0.02 %), but
 Kinect-like noise where sigma/r reaches 0.2-0.5 (median about -2.7 %, p10 -19 %): the likelihood of
 points displaced along the ray is not the orthogonal-distance one once the noise is a sizeable fraction of
 the radius. Weighting each point by its incidence (``origin=``, ``sigma |cos|``) did not remove it and made
-the predicted sigmas worse, so it is off by default; the bias is reported, not corrected.
+the predicted sigmas worse, so it is off by default. On real simulated scans (beam footprint of 4
+sub-rays, noise along the ray) the geometric fit was much further off: 2.1 % low (median) on the factory
+scanner's pipes, far outside its sigma. :func:`refit_along_rays` removes it, given each point's sub-ray
+directions: a range-space refit whose predicted return is the mean over the sub-rays of their distance to
+the model (measured on the default suite's groups with the truth segmentation: median error +0.02 %, median
+|error| 0.24 %, 88 % of radii within 2 predicted sigmas on the factory scanner; on the mock-up 0.00 % /
+0.03 % / 96 %).
 
 A degenerate fit (too few points, non-finite input, collinear or coplanar points where a curved primitive
 is needed, a diverging radius) is a result with ``ok=False`` and a ``reason``; only misuse raises.
@@ -53,6 +59,8 @@ __all__ = [
     "fit_sphere",
     "fit_cone",
     "axis_candidates",
+    "trimmed_chi2",
+    "refit_along_rays",
 ]
 
 
@@ -67,6 +75,7 @@ class _FitStats:
     n_iter: int
     ok: bool
     reason: str = ""
+    chi2_trim: float = float("nan")
 
     def __bool__(self) -> bool:
         return self.ok
@@ -240,6 +249,12 @@ def _huber_w(r: np.ndarray, c: float | None) -> np.ndarray:
     return np.where(a <= c, 1.0, c / np.maximum(a, 1e-300))
 
 
+def _robust_w(r: np.ndarray, c: float | None, trim: float | None) -> np.ndarray:
+    """Huber weights, and weight 0 beyond ``trim`` sigmas (hard trimming of mixed pixels and outliers)."""
+    w = _huber_w(r, c)
+    return w if trim is None else np.where(np.abs(r) <= trim, w, 0.0)
+
+
 def _huber_cost(r: np.ndarray, c: float | None) -> float:
     if c is None:
         return float(r @ r)
@@ -369,12 +384,22 @@ def _solve(fun, retract, starts, pts, sig, *, max_iter, tol, huber, max_points, 
     return state, r, J, _huber_w(r, huber), it
 
 
+TRIM_SIGMA = 3.5
+"""Residuals beyond this many sigmas count as ``TRIM_SIGMA²`` in ``chi2_trim`` (a robust goodness of fit)."""
+
+
+def trimmed_chi2(r: np.ndarray, c: float = TRIM_SIGMA) -> float:
+    """``sum(min(r², c²))`` of sigma-normalised residuals: mixed pixels, outliers and bits of a neighbouring
+    surface at a patch's border add at most ``c²`` each instead of dominating the sum."""
+    return float(np.sum(np.minimum(r * r, c * c)))
+
+
 def _stats(r: np.ndarray, d: np.ndarray, k: int, n_iter: int) -> dict:
     """Residual statistics from sigma-normalised residuals r (N,) and distances d (N,) in metres."""
     n = len(r)
     chi2 = float(r @ r)
     return {"rms_m": float(np.sqrt(np.mean(d * d))), "rms_sigma": float(np.sqrt(chi2 / n)), "chi2": chi2,
-            "n_points": n, "n_iter": n_iter}
+            "n_points": n, "n_iter": n_iter, "chi2_trim": trimmed_chi2(r)}
 
 
 def _local_cov(r: np.ndarray, J: np.ndarray, w: np.ndarray, k: int) -> np.ndarray:
@@ -682,12 +707,22 @@ def _circle_init(pts: np.ndarray, w: np.ndarray, a: np.ndarray):
     e1, e2 = _perp_basis(a)
     y = pts - m
     u, v = y @ e1, y @ e2
-    sw = np.sqrt(w)
-    A = np.stack([2 * u, 2 * v, np.ones_like(u)], axis=1) * sw[:, None]
-    b = (u * u + v * v) * sw
-    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
-    cu, cv = sol[0], sol[1]
-    R = float(np.sqrt(max(sol[2] + cu * cu + cv * cv, 1e-300)))
+    A0 = np.stack([2 * u, 2 * v, np.ones_like(u)], axis=1)
+    b0 = u * u + v * v
+    keep = np.ones(len(u), bool)
+    for _ in range(2):
+        # algebraic circle fit, then once more without the points far off it: a few percent of pixels from
+        # another surface (across a depth jump) otherwise drag the start into a wrong basin
+        sw = np.sqrt(w[keep])
+        sol, *_ = np.linalg.lstsq(A0[keep] * sw[:, None], b0[keep] * sw, rcond=None)
+        cu, cv = sol[0], sol[1]
+        R = float(np.sqrt(max(sol[2] + cu * cu + cv * cv, 1e-300)))
+        dev = np.abs(np.hypot(u - cu, v - cv) - R)
+        mad = 1.4826 * float(np.median(dev))
+        new_keep = dev <= max(6.0 * mad, 1e-12)
+        if new_keep.all() or new_keep.sum() < max(10, len(u) // 2):
+            break
+        keep = new_keep
     return m + cu * e1 + cv * e2, R
 
 
@@ -947,3 +982,181 @@ def fit_cone(
         return _fail_cone(n, "no finite initial cone")
     st, r, J, wts, it = out
     return _cone_result(st, r, J, wts, pts, sig, it, ext)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# beam footprint
+
+
+def _ray_hits(fit, dirs: np.ndarray) -> np.ndarray:
+    """Distance from the origin along unit rays ``dirs`` (..., 3) to the near side of a cylinder or sphere
+    (NaN where a ray misses)."""
+    if isinstance(fit, CylinderFit | _CylProxy):
+        a, p, R = fit.axis, fit.point, fit.radius
+        w = dirs - (dirs @ a)[..., None] * a
+        q0 = -p + (p @ a) * a  # the origin relative to the axis, across it
+        A = np.einsum("...i,...i->...", w, w)
+        B = w @ q0
+        C = q0 @ q0 - R * R
+    else:
+        c, R = fit.centre, fit.radius
+        A = np.ones(dirs.shape[:-1])
+        B = -(dirs @ c)
+        C = c @ c - R * R
+    disc = B * B - A * C
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = (-B - np.sqrt(disc)) / A
+    return np.where((disc >= 0) & (t > 0), t, np.nan)
+
+
+def refit_along_rays(fit, points: np.ndarray, sigma: np.ndarray, subrays: np.ndarray | None = None, *,
+                     huber: float | None = 3.0, trim: float | None = 4.0, max_points: int | None = 1500,
+                     max_iter: int = 5, final_points: int | None = 6000):
+    """Refit a cylinder or sphere by its range-space likelihood: measured minus predicted range along each ray.
+
+    The geometric fits minimise orthogonal distances, which is the likelihood of noise along the normal.
+    A range sensor's noise is along the ray, and its return is the mean range of ``k`` sub-rays (the beam
+    footprint: the centre ray and a ring around it) placed along the centre ray. Both bias one-sided fits
+    of convex surfaces low: on a convex surface the range is a convex function of the ray direction, so the
+    footprint mean lies beyond the centre ray's hit (points inside the surface by ``R'' footprint² / 2``, a
+    few mm near the silhouette of a thin distant pipe), and the orthogonal-distance fit of ray noise is
+    itself biased once sigma is a sizeable fraction of the radius. On the default suite's factory-scanner
+    scans the geometric fit came out 2.1 % low (median, far outside its sigma), 0.9 % low after correcting
+    the footprint alone.
+
+    Here the predicted range of a point is the mean over its sub-rays of their distance to the model
+    surface, the residual ``(|x| - predicted) / sigma`` (``sigma``: range sigma), minimised by Gauss-Newton
+    with Huber weights from the geometric solution (numerical Jacobian, a handful of iterations). Points
+    with a sub-ray that misses the current model (at the silhouette: their return is mixed with whatever
+    lies behind) are left out. The covariance is the sandwich form of :func:`_local_cov`.
+
+    Parameters
+    ----------
+    fit : CylinderFit or SphereFit
+        A geometric fit on ``points`` (any other type, or a failed fit, is returned unchanged).
+    points : ndarray of shape (N, 3), metres, sensor frame (the sensor at the origin)
+    sigma : ndarray of shape (N,), metres, range sigma along the ray
+    subrays : ndarray of shape (k, N, 3), optional
+        Unit sub-ray directions per point, the centre ray first; None: the centre rays ``points / |points|``.
+    huber, trim, max_points, max_iter, final_points
+        Huber threshold (sigma units), hard trimming threshold (sigma units: points beyond it get weight 0),
+        subsample size for the iterations, iteration limit, subsample size of the last two iterations and of
+        the statistics and covariance (None: all points).
+
+    Returns
+    -------
+    CylinderFit or SphereFit
+        The refit, whose residual statistics are range residuals; ``fit`` itself when the refit fails.
+    """
+    if not isinstance(fit, CylinderFit | SphereFit) or not fit.ok:
+        return fit
+    pts = np.asarray(points, dtype=np.float64)
+    sig = np.asarray(sigma, dtype=np.float64)
+    rng = np.linalg.norm(pts, axis=1)
+    if subrays is None:
+        subrays = (pts / rng[:, None])[None]
+    cyl = isinstance(fit, CylinderFit)
+    n = len(pts)
+    sub = _subsample(n, max_points)
+    idx = np.arange(n) if sub is None else sub
+    state = (fit.axis, fit.point, fit.radius) if cyl else (fit.centre, fit.radius)
+    k = 5 if cyl else 4
+    # iterations on the max_points subsample, then two on at most final_points points (the estimate and
+    # its covariance are those of the points used: no rescaling)
+    every = np.arange(n) if final_points is None or n <= final_points else _subsample(n, final_points)
+    it = 0
+    schedule = [idx] * max_iter + ([every] * 2 if len(every) > len(idx) else [])
+    for it, use in enumerate(schedule, start=1):
+        r, J, ii = _range_residuals(state, cyl, subrays, rng, sig, use)
+        if len(ii) < max(k + 10, len(use) // 3):
+            return fit
+        w = _robust_w(r, huber, trim)
+        H = J.T @ (J * w[:, None])
+        try:
+            step = -np.linalg.solve(H + 1e-9 * np.diag(np.diag(H)), J.T @ (w * r))
+        except np.linalg.LinAlgError:
+            return fit
+        state = _range_retract(state, cyl, step)
+        if not np.isfinite(state[-1]) or state[-1] <= 0:
+            return fit
+        small = np.all(np.abs(step) <= 1e-3 * np.sqrt(np.maximum(np.diag(np.linalg.pinv(H)), 1e-300)))
+        if small and (use is every or len(every) <= len(idx)):
+            break
+        if small and it < max_iter:
+            schedule[it:max_iter] = []  # converged on the subsample: go on to the final iterations
+    r, J, ii = _range_residuals(state, cyl, subrays, rng, sig, every)
+    if len(ii) < max(k + 10, len(every) // 3):
+        return fit
+    wts = _robust_w(r, huber, trim)
+    cov_l = _local_cov(r, J, wts, k)
+    st = _stats(r, r * sig[ii], k, it)
+    st["n_points"] = n
+    if cyl:
+        a, p, R = state
+        w8 = 1.0 / sig[ii] ** 2
+        centroid = (w8 @ pts[ii]) / w8.sum()
+        p = p + ((centroid - p) @ a) * a
+        e1, e2 = _perp_basis(a)
+        M = np.zeros((7, 5))
+        M[0:3, 2], M[0:3, 3] = e1, e2
+        M[3:6, 0], M[3:6, 1] = e1, e2
+        M[6, 4] = 1.0
+        cov = M @ cov_l @ M.T
+        return CylinderFit(point=p, axis=a, radius=float(R), length=_axis_stats(pts, a, p), cov=cov,
+                           radius_sigma=float(np.sqrt(cov_l[4, 4])),
+                           axis_sigma_rad=float(np.sqrt(cov_l[0, 0] + cov_l[1, 1])), **st, ok=True)
+    c, R = state
+    return SphereFit(centre=c, radius=float(R), cov=cov_l, radius_sigma=float(np.sqrt(cov_l[3, 3])), **st, ok=True)
+
+
+def _range_retract(state, cyl: bool, step):
+    if cyl:
+        a, p, R = state
+        e1, e2 = _perp_basis(a)
+        a_new = a + step[0] * e1 + step[1] * e2
+        return (a_new / np.linalg.norm(a_new), p + step[2] * e1 + step[3] * e2, state[2] + step[4])
+    return (state[0] + step[:3], state[1] + step[3])
+
+
+def _range_residuals(state, cyl: bool, subrays, rng, sig, ii):
+    """Range residuals ``(|x| - mean_j t_j) / sigma`` and their analytic Jacobian over the local parameters
+    (cylinder: axis tilts about e1, e2, axis-point shifts along e1, e2, radius; sphere: centre, radius),
+    by implicit differentiation of ``F(t, params) = 0`` along each sub-ray; rows whose sub-rays miss the
+    model are dropped. Returns (r, J, kept indices)."""
+    V = subrays[:, ii]  # (k, m, 3)
+    if cyl:
+        a, p, R = state
+        e1, e2 = _perp_basis(a)
+        t = _ray_hits(_CylProxy(p, a, R), V)
+        X = t[..., None] * V - p
+        Xa = X @ a
+        q = X - Xa[..., None] * a
+        dFdt = 2.0 * np.einsum("kmi,kmi->km", q, V)
+        X1, X2 = X @ e1, X @ e2
+        dF = np.stack([-2.0 * Xa * X1, -2.0 * Xa * X2, -2.0 * X1, -2.0 * X2, np.full_like(X1, -2.0 * R)], axis=-1)
+    else:
+        c, R = state
+        t = _ray_hits(_SphProxy(c, R), V)
+        X = t[..., None] * V - c
+        dFdt = 2.0 * np.einsum("kmi,kmi->km", X, V)
+        dF = np.concatenate([-2.0 * X, np.full(X.shape[:-1] + (1,), -2.0 * R)], axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dt = -dF / dFdt[..., None]  # (k, m, p)
+    T = np.mean(t, axis=0)
+    dT = np.mean(dt, axis=0)
+    ok = np.isfinite(T) & np.all(np.isfinite(dT), axis=1)
+    s = sig[ii][ok]
+    return (rng[ii][ok] - T[ok]) / s, -dT[ok] / s[:, None], ii[ok]
+
+
+@dataclass(frozen=True)
+class _CylProxy:
+    point: np.ndarray
+    axis: np.ndarray
+    radius: float
+
+
+@dataclass(frozen=True)
+class _SphProxy:
+    centre: np.ndarray
+    radius: float

@@ -182,3 +182,99 @@ def test_select_accuracy_per_preset(preset):
             n_ok += classify_patch(p.points, p.sigma).label == TRUE_CLASS[kind]
             n += 1
     assert n_ok / n >= (0.85 if preset == "kinect_like" else 0.95)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# issue 14: robustness, speed shortcuts, range-space refit, calibration floor
+
+
+def test_select_tolerates_far_outliers_from_another_surface():
+    rng = np.random.default_rng(11)
+    for i in range(3):
+        p = sample_patch("cylinder", np.random.default_rng([i, 14]), "factory_scanner")
+        k = max(3, len(p.points) // 30)  # ~3 % of the pixels belong to a surface 0.6 m behind
+        other = p.points[rng.choice(len(p.points), k, replace=False)] * (1.0 + 0.6 / np.linalg.norm(
+            p.points[:k], axis=1).mean())
+        pts = np.concatenate([p.points, other])
+        sig = np.concatenate([p.sigma, p.sigma[:k]])
+        r = classify_patch(pts, sig)
+        assert r.label == "CYL", (r.reason, r.probabilities)
+
+
+def test_plane_gate_skips_curved_fits_on_planes_only():
+    p = sample_patch("plane", np.random.default_rng(4), "factory_scanner")
+    r = classify_patch(p.points, p.sigma, planar_hint=True)
+    assert r.label == "PLAN" and r.details.get("curved_fits_skipped")
+    c = sample_patch("cylinder", np.random.default_rng(4), "factory_scanner")
+    r = classify_patch(c.points, c.sigma)
+    assert r.label == "CYL" and not r.details.get("curved_fits_skipped")
+    full = classify_patch(p.points, p.sigma, planar_hint=True, params=SelectParams(plane_gate=0.0))
+    assert full.label == "PLAN" and "CYL" in full.details["fits"]
+
+
+@pytest.mark.parametrize("kind", ["cylinder", "cone"])
+def test_cone_score_test_agrees_with_full_cone_fit(kind):
+    for i in range(4):
+        p = sample_patch(kind, np.random.default_rng([i, 21]), "factory_scanner")
+        fast = classify_patch(p.points, p.sigma)
+        slow = classify_patch(p.points, p.sigma, params=SelectParams(cone_score_skip=0.0))
+        assert fast.label == slow.label == TRUE_CLASS[kind]
+        if fast.details["cone_skipped"]:
+            assert fast.probabilities["CONE"] <= slow.probabilities["CONE"] + 0.2
+
+
+def test_probability_floor():
+    p = sample_patch("sphere", np.random.default_rng(5), "factory_scanner")
+    r = classify_patch(p.points, p.sigma)
+    floor = SelectParams().prob_floor
+    assert all(v >= floor / len(CLASSES) - 1e-12 for v in r.probabilities.values())
+    r0 = classify_patch(p.points, p.sigma, params=SelectParams(prob_floor=0.0))
+    assert r0.label == r.label and r0.probabilities[r.label] > r.probabilities[r.label]
+
+
+def test_rays_are_validated_and_only_computed_when_needed():
+    p = sample_patch("cylinder", np.random.default_rng(8), "factory_scanner")
+    u = p.points / np.linalg.norm(p.points, axis=1, keepdims=True)
+    with pytest.raises(ValueError, match="rays"):
+        classify_patch(p.points, p.sigma, rays=u[:-1])
+    calls = []
+
+    def rays():
+        calls.append(1)
+        return u[None]
+
+    r = classify_patch(p.points, p.sigma, rays=rays)
+    assert r.label == "CYL" and len(calls) == 1
+    assert r.details["geometric_fit"].radius != r.primitive.radius
+    assert abs(r.primitive.radius - p.truth["radius"]) < 5 * r.primitive.radius_sigma + 1e-3 * p.truth["radius"]
+    q = sample_patch("plane", np.random.default_rng(8), "factory_scanner")
+    calls.clear()
+    classify_patch(q.points, q.sigma, planar_hint=True, rays=rays)
+    assert not calls
+    assert classify_patch(p.points, p.sigma, method="paper", rays=u[None]).label in CLASSES
+
+
+@pytest.mark.parametrize("preset", ["factory_scanner", "kinect_like", "mockup_laser"])
+def test_patch_subrays_equal_the_sensor_ray_directions(preset):
+    from recognition.describe import _footprint_offsets, patch_subrays
+    from sensors.config import load_sensor
+
+    config = load_sensor(preset)
+    sensor = config.model
+    offsets = _footprint_offsets(config.noise)
+    h, w = sensor.shape
+    rows = np.array([0, 3, h // 2, h - 1])
+    cols = np.array([w - 1, 0, w // 3, 7])
+    got = patch_subrays(sensor, offsets, rows, cols)
+    want = np.stack([sensor.ray_directions(off)[rows, cols] for off in offsets])
+    np.testing.assert_allclose(got, want, atol=1e-12)
+
+
+
+def test_trimmed_rescue_runs_when_enabled_and_keeps_tori_oth_by_default():
+    p = sample_patch("torus", np.random.default_rng([944127]), "mockup_laser", n_max=2000, noise_scale=0.5)
+    assert classify_patch(p.points, p.sigma).label == "OTH"
+    r = classify_patch(p.points, p.sigma, params=SelectParams(min_inliers=0.8))
+    _check_result(r)
+    if r.label != "OTH":
+        assert r.details["trimmed_inlier_fraction"] >= 0.8
