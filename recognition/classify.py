@@ -68,7 +68,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from . import primitives as prim
-from .quadric import canonicalise, evaluate, fit_quadric
+from .quadric import canonicalise, check_patch, evaluate, fit_quadric
 
 __all__ = [
     "CLASSES", "PaperParams", "SelectParams", "PatchClassification", "classify_patch", "paper_plausibilities",
@@ -239,23 +239,6 @@ class PatchClassification:
 
 # ---------------------------------------------------------------------------------------------------------
 # helpers
-
-
-def _check_inputs(points, sigma, normals):
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"expected points of shape (N, 3), got {pts.shape}")
-    sig = np.asarray(sigma, dtype=np.float64)
-    if sig.ndim == 0:
-        sig = np.full(len(pts), float(sig))
-    if sig.shape != (len(pts),):
-        raise ValueError(f"expected sigma of shape ({len(pts)},), got {sig.shape}")
-    nrm = None
-    if normals is not None:
-        nrm = np.asarray(normals, dtype=np.float64)
-        if nrm.shape != pts.shape:
-            raise ValueError(f"expected normals of shape {pts.shape}, got {nrm.shape}")
-    return pts, sig, nrm
 
 
 def _check_rays(rays, n: int) -> np.ndarray:
@@ -847,7 +830,7 @@ def classify_patch(
     ValueError
         On wrong shapes, an unknown method or params of the wrong type.
     """
-    pts, sig, nrm = _check_inputs(points, sigma, normals)
+    pts, sig, nrm = check_patch(points, sigma, normals)
     if method not in ("select", "paper"):
         raise ValueError(f"method must be 'select' or 'paper', got {method!r}")
     if params is None:

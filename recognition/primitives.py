@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .quadric import QuadricFit, canonicalise, fit_quadric
+from .quadric import QuadricFit, canonicalise, check_patch, fit_quadric
 
 __all__ = [
     "PlaneFit",
@@ -189,23 +189,6 @@ class ConeFit(_FitStats):
 
 # ---------------------------------------------------------------------------------------------------------
 # helpers
-
-
-def _check(points, sigma, normals=None):
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"expected points of shape (N, 3), got {pts.shape}")
-    sig = np.asarray(sigma, dtype=np.float64)
-    if sig.ndim == 0:
-        sig = np.full(len(pts), float(sig))
-    if sig.shape != (len(pts),):
-        raise ValueError(f"expected sigma of shape ({len(pts)},), got {sig.shape}")
-    nrm = None
-    if normals is not None:
-        nrm = np.asarray(normals, dtype=np.float64)
-        if nrm.shape != pts.shape:
-            raise ValueError(f"expected normals of shape {pts.shape}, got {nrm.shape}")
-    return pts, sig, nrm
 
 
 def _input_problem(pts: np.ndarray, sig: np.ndarray, n_min: int) -> str:
@@ -482,7 +465,7 @@ def fit_plane(
     PlaneFit
         ``ok=False`` for fewer than 3 points, non-finite input or collinear points.
     """
-    pts, sig, nrm = _check(points, sigma, normals)
+    pts, sig, nrm = check_patch(points, sigma, normals)
     n = len(pts)
     why = _input_problem(pts, sig, 3)
     if why:
@@ -590,7 +573,7 @@ def fit_sphere(
     -------
     SphereFit
     """
-    pts, sig, _ = _check(points, sigma, normals)
+    pts, sig, _ = check_patch(points, sigma, normals)
     n = len(pts)
     why = _input_problem(pts, sig, 4)
     if why:
@@ -798,7 +781,7 @@ def fit_cylinder(
     -------
     CylinderFit
     """
-    pts, sig, nrm = _check(points, sigma, normals)
+    pts, sig, nrm = check_patch(points, sigma, normals)
     n = len(pts)
     why = _input_problem(pts, sig, 6)
     if why:
@@ -922,7 +905,7 @@ def fit_cone(
     ConeFit
         ``half_angle`` may be ~0 (a cylinder); the apex is then at infinity.
     """
-    pts, sig, nrm = _check(points, sigma, normals)
+    pts, sig, nrm = check_patch(points, sigma, normals)
     n = len(pts)
     why = _input_problem(pts, sig, 7)
     if why:

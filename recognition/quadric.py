@@ -228,7 +228,11 @@ def _normalisation_map(mean: np.ndarray, scale: float) -> np.ndarray:
 # fitting
 
 
-def _check_points_sigma(points, sigma) -> tuple[np.ndarray, np.ndarray]:
+def check_patch(points, sigma, normals=None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Validate a patch once: points (N, 3), sigma (N,) or a scalar, optional normals (N, 3), as float64.
+
+    Raises ValueError naming the expected shape (misuse); degenerate content is the fits' business.
+    """
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"expected points of shape (N, 3), got {pts.shape}")
@@ -237,7 +241,12 @@ def _check_points_sigma(points, sigma) -> tuple[np.ndarray, np.ndarray]:
         sig = np.full(len(pts), float(sig))
     if sig.shape != (len(pts),):
         raise ValueError(f"expected sigma of shape ({len(pts)},), got {sig.shape}")
-    return pts, sig
+    nrm = None
+    if normals is not None:
+        nrm = np.asarray(normals, dtype=np.float64)
+        if nrm.shape != pts.shape:
+            raise ValueError(f"expected normals of shape {pts.shape}, got {nrm.shape}")
+    return pts, sig, nrm
 
 
 def _degenerate(n: int, reason: str, mean=None, scale: float = 1.0) -> QuadricFit:
@@ -342,7 +351,7 @@ def fit_quadric(
     ValueError
         On wrong shapes.
     """
-    pts, sig = _check_points_sigma(points, sigma)
+    pts, sig, _ = check_patch(points, sigma)
     if cov_mode not in ("sandwich", "scaled"):
         raise ValueError(f"cov_mode must be 'sandwich' or 'scaled', got {cov_mode!r}")
     n = len(pts)
