@@ -51,6 +51,8 @@ class ChangeParams:
     radius_tolerance : relative radius change beyond which (and beyond 3 sigma) a feature is altered.
     loose_distance_fraction : loose-matching neighbourhood as a fraction of the model's diagonal.
     loose_angle_deg : largest axis/normal change of a moved feature.
+    altered_min_pixels : smallest patch whose fitted shape may declare a feature altered (small patches' radii are
+        unreliable and their covariances overconfident).
     new_min_pixels : smallest patch that can be reported new.
     new_unexplained_fraction : share of a patch's points that must be unexplained for it to be new.
     """
@@ -63,6 +65,7 @@ class ChangeParams:
     radius_tolerance: float = 0.1
     loose_distance_fraction: float = 0.03
     loose_angle_deg: float = 25.0
+    altered_min_pixels: int = 300
     new_min_pixels: int = 60
     new_unexplained_fraction: float = 0.7
 
@@ -216,7 +219,7 @@ def _line_distance(p: np.ndarray, a: np.ndarray, q: np.ndarray) -> float:
 def _same_shape(f: Feature, prim: dict, tol: float) -> bool | None:
     """Whether the patch's shape parameters agree with the feature's (None when not comparable)."""
     if (isinstance(f, Cylinder) and "point" in prim) or (isinstance(f, Sphere) and "centre" in prim):
-        sig = 3 * prim.get("radius_sigma", 0.0) if np.isfinite(prim.get("radius_sigma", np.nan)) else 0.0
+        sig = 4 * prim.get("radius_sigma", 0.0) if np.isfinite(prim.get("radius_sigma", np.nan)) else 0.0
         return abs(prim["radius"] - f.radius) <= max(tol * f.radius, sig)
     if isinstance(f, Cone) and "half_angle" in prim:
         return abs(prim["half_angle"] - f.half_angle) <= max(tol * f.half_angle, math.radians(2))
@@ -279,7 +282,9 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
                 results[fid] = FeatureChange("unobserved", None, (), found, revealed, occluded)
                 pending.append(fid)
                 continue
-            altered = _altered_by_patches(f, overlapping, patch_prims, params)
+            sizes = {p.id: p.n_pixels for p in description.patches}
+            altered = _altered_by_patches(f, [q for q in overlapping if sizes[q] >= params.altered_min_pixels],
+                                          patch_prims, params)
             claimed.update(overlapping)
             if altered:
                 results[fid] = FeatureChange("altered", None, tuple(altered), found, revealed, occluded,

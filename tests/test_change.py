@@ -136,3 +136,29 @@ def test_change_params_validation():
         ChangeParams(k_sigma=0)
     with pytest.raises(ValueError, match="min_pixels"):
         ChangeParams(min_pixels=0)
+
+
+@pytest.mark.parametrize("scene, preset", [("mockup", "mockup_laser"), ("factory_bay", "factory_scanner")])
+def test_no_change_gives_no_changed_label(scene, preset):
+    """False alarms over several viewpoints and noise seeds of an unchanged scene, with the true pose and the
+    core's own description: at most 2 % of the judged features get a changed label, and nothing is new."""
+    from scenes.generator import shipped_scene
+    from sensors.config import load_sensor
+    from sensors.viewpoints import sample_viewpoints
+
+    model = SceneModel.load(shipped_scene(scene))
+    sim, predictor = Simulator.from_scene(model), ModelPredictor(model)
+    config = load_sensor(preset)
+    views = sample_viewpoints(sim, model, config.model, 4, np.random.default_rng(5)).viewpoints
+    assert len(views) == 4
+    judged = changed = new = 0
+    for seed, view in enumerate(views):
+        scan, truth = sim.simulate(config, view.T_world_sensor, np.random.default_rng(seed))
+        result = detect_changes(describe(scan), scan, model, truth.T_world_sensor, predictor=predictor)
+        labels = [r.label for r in result.features.values() if r.label != "unobserved"]
+        judged += len(labels)
+        changed += sum(lab != "unchanged" for lab in labels)
+        new += len(result.new_patches)
+    assert judged >= 20
+    assert changed / judged <= 0.02, f"{changed} false alarms among {judged} judged features"
+    assert new == 0
