@@ -318,8 +318,9 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
                                                         prev.occluded, "same place, other shape parameters")
             elif same is not False and dist <= reach and _within_angle(f, prim, params.loose_angle_deg):
                 if dist < best:
-                    best, verdict = dist, FeatureChange("moved", dist, (p.id,), prev.found, prev.revealed,
-                                                        prev.occluded, "found in the loose neighbourhood")
+                    best, verdict = dist, FeatureChange("moved", _displacement(f, prim, dist), (p.id,),
+                                                        prev.found, prev.revealed, prev.occluded,
+                                                        "found in the loose neighbourhood")
         if verdict is not None:
             fragments = _fragments_of(verdict.patches[0], description, patch_prims, claimed, T, allowance, f)
             results[fid] = replace(verdict, patches=verdict.patches + fragments)
@@ -490,6 +491,22 @@ def _tight(f: Feature, prim: dict, allowance_m: float) -> bool | None:
     if isinstance(f, Cone) and "apex" in prim:
         return angle_ok(f.axis, prim["axis"], prim["axis_sigma"])
     return None
+
+
+def _displacement(f: Feature, prim: dict, fallback: float) -> float:
+    """How far a moved feature's surface moved (metres), from its fitted primitive at the new place: the
+    largest distance of the model feature's extent (axis ends, plane corners, centre) to the fitted axis, plane
+    or centre - the component of the move that range data can see. ``fallback`` (the patch's median distance
+    to the old surface) when the fit says nothing."""
+    if isinstance(f, Cylinder | Cone) and "point" in prim:
+        ends = f.endpoints() if isinstance(f, Cylinder) else f.apex + np.outer([f.start, f.end], f.axis)
+        w = ends - prim["point"]
+        return float(np.max(np.linalg.norm(w - np.outer(w @ prim["axis"], prim["axis"]), axis=1)))
+    if isinstance(f, Plane) and "centroid" in prim:
+        return float(np.max(np.abs((f.corners() - prim["centroid"]) @ prim["normal"])))
+    if isinstance(f, Sphere) and "centre" in prim:
+        return float(np.linalg.norm(prim["centre"] - f.centre))
+    return fallback
 
 
 def _within_angle(f: Feature, prim: dict, max_deg: float) -> bool:
