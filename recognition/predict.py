@@ -24,5 +24,3 @@ class ModelPredictor:
     def predict(self, sensor: SensorModel, T_world_sensor: np.ndarray, stride: int = 1) -> Prediction:
         return predict(self.simulator, sensor, T_world_sensor, stride)
 
-
-PredictedImage = Prediction  # transitional name used by recognition.peers; to be removed with its update
