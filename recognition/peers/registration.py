@@ -34,59 +34,17 @@ from __future__ import annotations
 import math
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from recognition.localise import PoseResult
 from recognition.predict import ModelPredictor
 from scenes.model import SceneModel
 from sensors.range_image import Scan
 
-__all__ = ["PeerPoseResult", "RegistrationParams", "register", "available_peers", "missing_peers"]
-
-
-@dataclass(frozen=True)
-class _PeerPoseResult:
-    """Same fields as ``recognition.localise.PoseResult`` (the core's pose stage result), used when that
-    module does not import.
-
-    Attributes
-    ----------
-    ok : bool, the registration passed its own check (ICP fitness >= ``min_fitness``).
-    reason : why not ok ("" otherwise).
-    T_world_sensor : ndarray of shape (4, 4) or None, after ICP.
-    T_world_sensor_initial : ndarray of shape (4, 4) or None, the global registration's estimate (before ICP).
-    cov_T_world_sensor : ndarray of shape (6, 6) or None, (rotation vector rad, translation m), left, world.
-    free_dof : int, directions the ICP information leaves unconstrained.
-    confidence : float, the final ICP fitness in [0, 1].
-    pairings : tuple, empty (no feature pairings: registration works on points).
-    n_hypotheses : int, feature correspondences the global registration worked on.
-    n_nodes : int, 0 (no search tree).
-    predicted : the model prediction (``recognition.predict``) cast from the final pose, or None
-        (shared with change detection).
-    timing_s : dict, ``model`` (target preparation, cached), ``matching`` (features + global registration),
-        ``icp``, ``predict`` (the casts of the model).
-    """
-
-    ok: bool
-    reason: str
-    T_world_sensor: np.ndarray | None
-    T_world_sensor_initial: np.ndarray | None
-    cov_T_world_sensor: np.ndarray | None
-    free_dof: int
-    confidence: float
-    pairings: tuple = ()
-    n_hypotheses: int = 0
-    n_nodes: int = 0
-    predicted: Any = None
-    timing_s: dict[str, float] = field(default_factory=dict)
-
-
-try:
-    from recognition.localise import PoseResult as PeerPoseResult
-except ImportError:  # the core's pose stage not there: the same fields, here
-    PeerPoseResult = _PeerPoseResult
+__all__ = ["RegistrationParams", "register", "available_peers", "missing_peers"]
 
 
 @dataclass(frozen=True)
@@ -240,8 +198,8 @@ class _Open3DSettings:
         return False
 
 
-def _fail(reason: str, timing: dict, T_init=None) -> PeerPoseResult:
-    return PeerPoseResult(False, reason, None, T_init, None, 6, 0.0, (), 0, 0, None, timing)
+def _fail(reason: str, timing: dict, T_init=None) -> PoseResult:
+    return PoseResult(False, reason, None, T_init, None, 6, 0.0, (), 0, 0, None, timing)
 
 
 def _predict(predictor: ModelPredictor, sensor, T: np.ndarray, stride: int = 1):
@@ -253,12 +211,12 @@ def _predict(predictor: ModelPredictor, sensor, T: np.ndarray, stride: int = 1):
 
 
 def register(scan: Scan, model: SceneModel, predictor: ModelPredictor,
-             params: RegistrationParams = RegistrationParams()) -> PeerPoseResult:
+             params: RegistrationParams = RegistrationParams()) -> PoseResult:
     """Register ``scan`` to the a priori ``model`` by global registration + ICP (see the module docstring).
 
     Returns
     -------
-    PeerPoseResult
+    PoseResult
         ``ok=False`` with a reason when the scan or the model gives too few points, the global registration
         finds nothing, or the final ICP fitness is below ``min_fitness``.
     """
@@ -267,7 +225,7 @@ def register(scan: Scan, model: SceneModel, predictor: ModelPredictor,
 
 
 def _register(scan: Scan, model: SceneModel, predictor: ModelPredictor, params: RegistrationParams
-              ) -> PeerPoseResult:
+              ) -> PoseResult:
     o3d = _o3d()
     reg = o3d.pipelines.registration
     timing = {"model": 0.0, "matching": 0.0, "icp": 0.0, "predict": 0.0}
@@ -339,7 +297,7 @@ def _register(scan: Scan, model: SceneModel, predictor: ModelPredictor, params: 
     fitness = float(icp.fitness)
     ok = fitness >= params.min_fitness
     reason = "" if ok else f"ICP fitness {fitness:.2f} below {params.min_fitness:.2f}"
-    return PeerPoseResult(ok, reason, T, T_init, cov, free, fitness, (), n_corr, 0, predicted, timing)
+    return PoseResult(ok, reason, T, T_init, cov, free, fitness, (), n_corr, 0, predicted, timing)
 
 
 def _covariance(info: np.ndarray, rmse: float) -> tuple[np.ndarray | None, int]:
@@ -353,7 +311,7 @@ def _covariance(info: np.ndarray, rmse: float) -> tuple[np.ndarray | None, int]:
 
 def _runner(method: str):
     def run(description, scan: Scan, model: SceneModel, params: dict[str, Any] | None, predictor: ModelPredictor
-            ) -> PeerPoseResult:
+            ) -> PoseResult:
         """Peer ``pose`` stage: ``description`` is not used (registration works on the raw points)."""
         return register(scan, model, predictor, RegistrationParams.from_dict(params, method=method))
 
