@@ -79,15 +79,7 @@ def _fit_class(cls: str, points: np.ndarray, sigma: np.ndarray, normals: np.ndar
     if len(points) < 10:
         return None
     nrm = normals if np.all(np.isfinite(normals)) else None
-    if cls == "PLAN":
-        return primitives.fit_plane(points, sigma, nrm)
-    if cls == "CYL":
-        return primitives.fit_cylinder(points, sigma, nrm)
-    if cls == "SPH":
-        return primitives.fit_sphere(points, sigma, nrm)
-    if cls == "CONE":
-        return primitives.fit_cone(points, sigma, nrm)
-    return None
+    return primitives.fit_primitive(cls, points, sigma, nrm)
 
 
 def truth_pairings(description: SceneDescription, truth: ScanTruth,

@@ -1143,3 +1143,10 @@ class _CylProxy:
 class _SphProxy:
     centre: np.ndarray
     radius: float
+
+
+def fit_primitive(label: str, points: np.ndarray, sigma: np.ndarray | float,
+                  normals: np.ndarray | None = None) -> PlaneFit | CylinderFit | SphereFit | ConeFit | None:
+    """The dedicated fit of class ``label`` (PLAN, CYL, SPH, CONE) with default settings; None for OTH."""
+    fit = {"PLAN": fit_plane, "CYL": fit_cylinder, "SPH": fit_sphere, "CONE": fit_cone}.get(label)
+    return None if fit is None else fit(points, sigma, normals)

@@ -231,18 +231,6 @@ def _residual(fit, x: np.ndarray) -> np.ndarray:
     return np.abs(radial - (fit.radius_at_point + ta * h)) * math.cos(fit.half_angle)
 
 
-def _fit(label: str, pts: np.ndarray, sig: np.ndarray, nrm: np.ndarray):
-    if label == "PLAN":
-        return prim.fit_plane(pts, sig, nrm)
-    if label == "CYL":
-        return prim.fit_cylinder(pts, sig, nrm)
-    if label == "SPH":
-        return prim.fit_sphere(pts, sig, nrm)
-    if label == "CONE":
-        return prim.fit_cone(pts, sig, nrm)
-    return None
-
-
 def _length_sigma(pts: np.ndarray, axis: np.ndarray, length: float) -> float:
     w = pts - pts.mean(axis=0)
     across = w - np.outer(w @ axis, axis)
@@ -352,7 +340,8 @@ def _to_patches(scan, sigma, normals, ok, rows, cols, stride, sample_labels, typ
         label = _LABEL.get(kind, "OTH")
         t0 = time.perf_counter()
         spts = scan.points[rows[samp], cols[samp]]
-        sfit = _fit(label, spts, np.maximum(sigma[rows[samp], cols[samp]], 1e-6), normals[rows[samp], cols[samp]])
+        sfit = prim.fit_primitive(label, spts, np.maximum(sigma[rows[samp], cols[samp]], 1e-6),
+                                  normals[rows[samp], cols[samp]])
         if sfit is not None and sfit.ok:
             pix = pix[_residual(sfit, P[pix]) <= max(eps, 3 * float(np.nanmedian(S[pix])))]
         t_cls += time.perf_counter() - t0
@@ -366,7 +355,7 @@ def _to_patches(scan, sigma, normals, ok, rows, cols, stride, sample_labels, typ
         labels.flat[pix] = new_id
         pts, sig = P[pix], np.maximum(S[pix], 1e-6)
         t0 = time.perf_counter()
-        fit = _fit(label, pts, sig, N[pix])
+        fit = prim.fit_primitive(label, pts, sig, N[pix])
         cls = _classification(label, fit, pts, detector)
         stype = _SURFACE[cls.label]
         surf = surface_plane(pts, sig) if cls.label == "PLAN" else fit_quadric_lsq(pts, sig)
