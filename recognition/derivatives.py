@@ -203,6 +203,18 @@ def _full_window_derivatives(points0: np.ndarray, window: int) -> tuple[np.ndarr
     return Pu, Pv, Puu, Puv, Pvv
 
 
+def clean_windows(valid: np.ndarray, jump_h: np.ndarray, jump_v: np.ndarray, window: int) -> np.ndarray:
+    """(H, W) bool: pixels whose ``window x window`` neighbourhood has no hole and crosses no jump (where the
+    fixed Savitzky-Golay kernels apply). ``jump_h`` (H, W-1) and ``jump_v`` (H-1, W) mark jumps between
+    horizontal and vertical neighbours; both pixels of a jump count as bad."""
+    bad = ~valid
+    bad[:, :-1] |= jump_h
+    bad[:, 1:] |= jump_h
+    bad[:-1, :] |= jump_v
+    bad[1:, :] |= jump_v
+    return ~ndi.maximum_filter(bad, size=window, mode="constant", cval=True)
+
+
 def quadratic_derivatives(
     points: np.ndarray,
     sigma: np.ndarray,
@@ -248,12 +260,7 @@ def quadratic_derivatives(
         full = np.zeros((H, W), dtype=bool)
     else:
         jump_h, jump_v = jump_pairs(rng, sigma, rays, jump_k, jump_tan)
-        bad = ~valid
-        bad[:, :-1] |= jump_h
-        bad[:, 1:] |= jump_h
-        bad[:-1, :] |= jump_v
-        bad[1:, :] |= jump_v
-        full = ~ndi.maximum_filter(bad, size=window, mode="constant", cval=True)
+        full = clean_windows(valid, jump_h, jump_v, window)
     if full.any():
         Pu, Pv, Puu, Puv, Pvv = _full_window_derivatives(np.where(valid[..., None], points, 0.0), window)
         notfull = ~full

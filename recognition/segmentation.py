@@ -70,7 +70,7 @@ import scipy.ndimage as ndi
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from recognition.derivatives import jump_pairs, norm3, quadratic_derivatives, savgol_kernels
+from recognition.derivatives import clean_windows, jump_pairs, norm3, quadratic_derivatives, savgol_kernels
 from recognition.surface_fit import (
     _MIN_GRAZING,
     PlaneFit,
@@ -434,12 +434,7 @@ def noise_scale(rng: np.ndarray, sigma: np.ndarray, valid: np.ndarray, jump_h: n
     # value at the centre of the 2D total-degree-2 fit: box (x) box - c (d2 (x) box + box (x) d2)
     K2 = np.outer(k["box"], k["box"]) - c * (np.outer(k["d2"], k["box"]) + np.outer(k["box"], k["d2"]))
     lev = float(K2[h, h])
-    bad = ~valid
-    bad[:, :-1] |= jump_h
-    bad[:, 1:] |= jump_h
-    bad[:-1, :] |= jump_v
-    bad[1:, :] |= jump_v
-    full = ~ndi.maximum_filter(bad, size=window, mode="constant", cval=True)
+    full = clean_windows(valid, jump_h, jump_v, window)
     step = 3
     rs = np.arange(1, H, step)
     cs = np.arange(1, W, step)
