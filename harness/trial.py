@@ -20,9 +20,11 @@ import numpy as np
 from evaluation.change import change_section
 from evaluation.oracles import truth_classification, truth_pairings, truth_segmentation
 from evaluation.patches import classification_section, segmentation_section
+from evaluation.pose import constrains_pose, pose_section
 from harness.suite import TrialPlan, TrialSpec
 from recognition.change import detect_changes
 from recognition.describe import DescribeParams, core_sigma, describe
+from recognition.localise import LocaliseParams, localise
 from recognition.peers import PEERS
 from recognition.predict import ModelPredictor
 from scenes.model import SceneModel
@@ -31,12 +33,6 @@ from sensors.config import SensorConfig, load_sensor
 from sensors.range_image import Scan, ScanTruth
 from sensors.simulate import Simulator
 from sensors.viewpoints import ViewpointSpec, sample_viewpoints
-
-try:  # the pose stage (issue 7) lands separately; until then its sections are null, never faked
-    from evaluation.pose import constrains_pose, pose_section
-    from recognition.localise import LocaliseParams, localise
-except ModuleNotFoundError:
-    constrains_pose = pose_section = LocaliseParams = localise = None
 
 TRIAL_SCHEMA = "harness.trial/1"
 STAGES = ("sensor", "segmentation", "classification", "matching", "icp", "change")
@@ -207,7 +203,7 @@ class TrialContext:
         self._apriori_at_truth = None
         self.object_of = {f.id: o.id for m in (prepared.apriori, prepared.actual) for o in m.objects
                           for f in o.features}
-        self.constrained = bool(constrains_pose(truth, prepared.actual)) if constrains_pose else None
+        self.constrained = bool(constrains_pose(truth, prepared.actual))
 
     @property
     def apriori_at_truth(self):
@@ -250,10 +246,8 @@ def run_pipeline(ctx: TrialContext, params: DescribeParams, segmentation=None, o
         "change": None,
         "timing_s": timing,
     }
-    pose = estimate_pose(ctx, desc, oracle, peer if peer is not None and peer[0].replaces == "pose" else None)
-    if pose is None:
-        return record, desc
-    T_est, cov, predicted, pose_record, pose_timing = pose
+    T_est, cov, predicted, pose_record, pose_timing = estimate_pose(
+        ctx, desc, oracle, peer if peer is not None and peer[0].replaces == "pose" else None)
     record["pose"] = pose_record
     timing.update(pose_timing)
     if T_est is not None:
@@ -270,17 +264,15 @@ def run_pipeline(ctx: TrialContext, params: DescribeParams, segmentation=None, o
 
 
 def estimate_pose(ctx: TrialContext, desc, oracle: str | None, peer: tuple | None = None):
-    """``(T_world_sensor or None, covariance, predicted image, pose record, timings)``, or None when the
-    pose stage is not built yet. The ``pose`` oracle gives the true pose; ``pairing`` gives the truth
-    correspondences to the pose stage; a registration peer replaces the core's localisation."""
+    """``(T_world_sensor or None, covariance, predicted image, pose record, timings)``. The ``pose`` oracle
+    gives the true pose; ``pairing`` gives the truth correspondences to the pose stage; a registration peer
+    replaces the core's localisation."""
     truth = ctx.truth
     if oracle == "pose":
         T = truth.T_world_sensor
         rec = {"rotation_error_deg": 0.0, "translation_error_mm": 0.0, "success": True, "ok": True,
                "constrained": ctx.constrained, "oracle": True, "initial": None}
         return T, np.zeros((6, 6)), None, rec, {}
-    if localise is None:
-        return None
     if peer is not None:
         result = peer[0].run(desc, ctx.scan, ctx.prepared.apriori, peer[1], ctx.prepared.predictor)
     else:
