@@ -72,9 +72,8 @@ def change_section(result: ChangeResult, truth: ScanTruth, change_truth: ChangeT
     new_truth = set(change_truth.new_features)
     surface_feature = np.array([s.feature_id for s in truth.surfaces] + [""], dtype=object)
     n_false_new = 0
-    patch_pixels = _patch_pixels(result)
     for pid in result.new_patches:
-        owners = surface_feature[sid_flat[patch_pixels[pid]]]
+        owners = surface_feature[sid_flat[result.new_patch_pixels[pid]]]
         owner, count = Counter(owners).most_common(1)[0]
         if owner not in new_truth:
             features.append({"feature": owner or None, "truth": "none", "predicted": "new", "patch": int(pid)})
@@ -99,7 +98,3 @@ def change_section(result: ChangeResult, truth: ScanTruth, change_truth: ChangeT
     return {"features": features, "objects": objects, "displacement_error_mm": displacement_errors,
             "n_observable": len(observable), "n_false_new": n_false_new}
 
-
-def _patch_pixels(result: ChangeResult) -> dict[int, np.ndarray]:
-    """Pixels of each reported new patch, recovered from the change map's patch ids."""
-    return dict(result.new_patch_pixels)
