@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 
 from scenes.config import ConfigError
@@ -58,5 +59,14 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def entry() -> None:
+    """The program's entry point: run :func:`main`, then exit with its code. A Ctrl-C that arrives once
+    the work is done (while the interpreter tears down its threads and modules) has nothing left to
+    interrupt: it is ignored, so the exit code stays the command's own."""
+    code = main()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()
