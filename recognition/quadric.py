@@ -51,6 +51,8 @@ __all__ = [
     "quadric_params",
     "monomials",
     "evaluate",
+    "design_matrices",
+    "taubin_fit",
 ]
 
 # index pairs of the symmetric matrix entries carried by params 0..5
@@ -258,8 +260,9 @@ def _degenerate(n: int, reason: str, mean=None, scale: float = 1.0) -> QuadricFi
     )
 
 
-def _taubin(D: np.ndarray, G: np.ndarray, w: np.ndarray) -> tuple[np.ndarray | None, str]:
-    """Weighted Taubin fit from the design matrices (normalised coordinates); unit params or (None, why)."""
+def taubin_fit(D: np.ndarray, G: np.ndarray, w: np.ndarray) -> tuple[np.ndarray | None, str]:
+    """Weighted Taubin fit (G. Taubin, PAMI 13(11), 1991) from :func:`design_matrices` of points in
+    normalised coordinates, weights ``w`` (N,): unit parameters (10,), or (None, why) for degenerate points."""
     sw = np.sqrt(w)[:, None]
     Dw = D * sw
     M = Dw.T @ Dw
@@ -283,7 +286,7 @@ def _taubin(D: np.ndarray, G: np.ndarray, w: np.ndarray) -> tuple[np.ndarray | N
     return p / np.linalg.norm(p), ""
 
 
-def _design(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def design_matrices(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Monomials D (N, 10) and gradient design G (3, N, 10) with ``f = D p``, ``grad f = G p``."""
     D = monomials(y)
     x, yy, z = y[:, 0], y[:, 1], y[:, 2]
@@ -368,8 +371,8 @@ def fit_quadric(
         return _degenerate(n, "all points coincide", mean)
     y = d / scale
     s = sig / scale
-    D, G = _design(y)
-    p, why = _taubin(D, G, 1.0 / s**2)
+    D, G = design_matrices(y)
+    p, why = taubin_fit(D, G, 1.0 / s**2)
     if p is None:
         return _degenerate(n, why, mean, scale)
     r, J = _sampson(p, D, G, s)

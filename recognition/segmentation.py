@@ -49,8 +49,11 @@ What the simulated suites (mixed pixels, outliers, grazing dropouts, incidence-d
    brought back to full resolution: patches are refitted on their coarse samples (trimmed), pixels near a
    label change, hole or jump that are off their patch's surface are released and regrown.
 8. **Growing restarts from the seeds after every (trimmed) refit**, so pixels admitted by a seed's
-   extrapolated surface are not kept. Optionally (``split_seeds``) seeds that one surface does not fit (a
-   class component spanning two faces across a blurred crease) are cut into tiles that merging reassembles.
+   extrapolated surface are not kept. On decimated grids (``split_seeds``) seeds that one surface does not
+   fit (a class component spanning two faces across a blurred crease, a pipe and its tangent elbow) are cut
+   into tiles that merging reassembles; so are unseeded leftover pieces (a thin pipe run). The quick fits
+   behind these tests are Taubin fits: the plain algebraic quadric fit is biased on small arcs.
+   Two patches that each fit a plane merge only as one plane, never as the plane pair a quadric fits.
 9. **Hoover-literal hygiene**: fragments under ``min_region_pixels`` join a bordering patch whose surface
    fits them; pixels with at most two 4-neighbours in their own patch are left unlabelled (mixed pixels
    and one-pixel slivers of other surfaces at corners: the metric counts a patch that wholly covers a
@@ -71,6 +74,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from recognition.derivatives import clean_windows, jump_pairs, norm3, quadratic_derivatives, savgol_kernels
+from recognition.quadric import design_matrices, taubin_fit
 from recognition.surface_fit import (
     _MIN_GRAZING,
     PlaneFit,
@@ -80,7 +84,6 @@ from recognition.surface_fit import (
     normalisation_transform,
     plane_params,
     quadric_gradient,
-    quadric_monomials,
     ray_residuals,
 )
 
@@ -176,9 +179,10 @@ class SegmentationParams:
     merge_fit_points : int
         Points per patch in the fits that test a merge.
     max_tiled_leftover : int
-        Leftover pieces (no seed: thin pipes) below this size (pixels of the segmentation grid) that one
-        surface does not fit are cut into tiles like bad seeds. 0 (default) disables it: on the simulated
-        suites it recovered thin pipe runs (pipe, elbow, pipe) but left more fragments elsewhere.
+        Leftover pieces (no seed: thin pipes, every window of which crosses a jump) below this size (pixels
+        of the segmentation grid) that one surface does not fit are cut into tiles like bad seeds. A whole
+        pipe run (pipe, reducer, pipe, elbow) is otherwise one patch: correct detection with the factory
+        scanner 0.59 -> 0.66 on the default suite.
     class_min_pixels : int
         Classified pixels a patch needs for its dominant class to veto a merge across a cylindrical /
         doubly-curved class boundary (pixels of the segmentation grid); 0 (default) disables the veto: on
@@ -191,11 +195,14 @@ class SegmentationParams:
         None: 2 for images of at least 400 rows, else 1 (:meth:`step`).
     final_fit_points : int
         Points (deterministic stride subsample) of the final plane / quadric fit of each patch.
-    split_seeds : bool
-        Cut seeds that one surface does not fit into tiles (:func:`_split_bad_seeds`). Off by default: it
-        doubles the Kinect-like correct detection on the simulated factory (0.21 -> 0.43: two walls and the
-        floor in one seed), but on the real pyRANSAC-3D box scans the tiles of the under-segmented seeds are
-        not reassembled and come out labelled CYL / CONE (DESIGN 10.12 wants PLAN there).
+    split_seeds : bool or None
+        Cut seeds that one surface does not fit into tiles (:func:`_split_bad_seeds`); merging reassembles
+        the tiles that share a surface. None (default): on for decimated grids (VGA-class images). There it
+        recovers pipe runs and faces that one class component spans (a tangent elbow, a blurred crease:
+        correct detection on the default suite 0.81 -> 0.92 mock-up, 0.57 -> 0.59 factory scanner, 0.18 ->
+        0.23 Kinect-like). Off on full-resolution grids: on the real pyRANSAC-3D box scans (structured light,
+        245 x 276) the faces are warped by more than the noise, so their tiles are never reassembled and come
+        out labelled CYL / CONE (DESIGN 10.12 wants PLAN there).
     seed_tile : int
         Side (pixels of the segmentation grid) of the tiles that a seed badly fitted by one surface is cut into.
     split_k : float
@@ -234,12 +241,12 @@ class SegmentationParams:
     max_fit_points: int = 1500
     merge_fit_points: int = 400
     class_min_pixels: int = 0
-    max_tiled_leftover: int = 0
+    max_tiled_leftover: int = 1_000_000
     connectivity: int = 4
     calibrate_noise: bool = True
     min_region_pixels: int = 200
     decimation: int | None = None
-    split_seeds: bool = False
+    split_seeds: bool | None = None
     seed_tile: int = 12
     split_k: float = 4.0
     final_fit_points: int = 5000
@@ -361,6 +368,9 @@ class Segmentation:
         Bitmask of :class:`EdgeType` (1 jump, 2 crease).
     patches : tuple of Patch
         Ordered by decreasing size; ``patches[i].id == i``.
+    noise_scale : ndarray of shape (H, W) or None
+        The measured-to-declared range noise ratio (:func:`noise_scale`, >= 1) the thresholds used; None
+        when not measured (``calibrate_noise`` off, or no returns).
     """
 
     labels: np.ndarray
@@ -372,6 +382,7 @@ class Segmentation:
     normals: np.ndarray
     edges: np.ndarray
     patches: tuple[Patch, ...]
+    noise_scale: np.ndarray | None = None
 
     @property
     def n_patches(self) -> int:
@@ -840,9 +851,11 @@ def _quick_fit(x: np.ndarray, u: np.ndarray, s: np.ndarray, planar: bool,
         mean = x.mean(axis=0)
         scale = float(np.sqrt(np.mean(np.sum((x - mean) ** 2, axis=1)))) or 1.0
         y = (x - mean) / scale
-        D = quadric_monomials(y)
-        _, V = np.linalg.eigh(D.T @ D)
-        pn = V[:, 0]
+        D, G = design_matrices(y)
+        pn, _ = taubin_fit(D, G, np.ones(len(y)))
+        if pn is None:
+            _, V = np.linalg.eigh(D.T @ D)
+            pn = V[:, 0]
         f = D @ pn
         g = quadric_gradient(pn, y)
         p = None
@@ -889,8 +902,9 @@ def _fit_groups(groups: dict[int, np.ndarray], st: _State, n_labels: int, trim: 
         counts = np.bincount(st.hk[idx], minlength=5)
         planar = _is_planar_counts(counts)
         P[lab], z = _quick_fit(st.X[sub], st.U[sub], st.S[sub], planar)
-        if planar and counts[0] > counts[1:].sum() and sub.size >= 20 and not _rms(z) <= st.params.merge_k:
-            # mostly undefined curvature (thin pipes: every window crosses a jump) and not a plane
+        if planar and sub.size >= 20 and not _rms(z) <= st.params.merge_k:
+            # not a plane after all: curvature undefined (thin pipes: every window crosses a jump) or within
+            # its noise (a pipe seen close up by a fine-grained sensor, whose windows span a few mm)
             pq, zq = _quick_fit(st.X[sub], st.U[sub], st.S[sub], False)
             if _rms(zq) < 0.5 * _rms(z):
                 planar, P[lab], z = False, pq, zq
@@ -1031,6 +1045,12 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
     members = dict(groups)
     subs = {k: _subsample(v, nmax) for k, v in members.items()}
     counts = {k: np.bincount(st.hk[v], minlength=5) for k, v in members.items()}
+
+    def flat(k: int) -> bool:
+        _, z = _quick_fit(st.X[subs[k]], st.U[subs[k]], st.S[subs[k]], True, want_params=False)
+        return _rms(z) <= thr
+
+    flats = {k: flat(k) for k in members}
     version = dict.fromkeys(members, 0)
     nbrs: dict[int, set[int]] = {k: set() for k in members}
     for a, b in _adjacency(labels, jump_h, jump_v):
@@ -1044,7 +1064,9 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
         if sa.size < sb.size:
             sa, sb = sb, sa
         sub = np.concatenate([sa, sb])
-        planar = _is_planar_counts(counts[a]) and _is_planar_counts(counts[b])
+        # two planes (by class, or by fit: crease pixels make a face look curved) merge only as one plane,
+        # never as the plane pair a general quadric fits exactly
+        planar = (_is_planar_counts(counts[a]) and _is_planar_counts(counts[b])) or (flats[a] and flats[b])
         _, z = _quick_fit(st.X[sub], st.U[sub], st.S[sub], planar, want_params=False)
         rms_all, rms_small = _rms(z), _rms(z[sa.size:])
         return rms_all if rms_small <= 1.5 * thr else float("inf")
@@ -1073,6 +1095,8 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
         subs[a] = _subsample(np.sort(members[a]), nmax)
         subs.pop(b)
         counts[a] = counts[a] + counts.pop(b)
+        flats.pop(b)
+        flats[a] = flat(a)
         version[a] += 1
         parent[parent == b] = a
         old = nbrs[a]
@@ -1303,11 +1327,15 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
     with np.errstate(invalid="ignore", divide="ignore"):
         rays = pts / rng[..., None]
     declared = sig
+    scale = None
     jump_h, jump_v = jump_pairs(rng, sig, rays, params.jump_k, params.jump_tan)
     if params.calibrate_noise:
-        sig = sig * noise_scale(rng, sig, valid, jump_h, jump_v, params.window, params.max_noise_scale)
+        scale = noise_scale(rng, sig, valid, jump_h, jump_v, params.window, params.max_noise_scale)
+        sig = sig * scale
         jump_h, jump_v = jump_pairs(rng, sig, rays, params.jump_k, params.jump_tan)
     d = params.step(shape)
+    if params.split_seeds is None:
+        params = replace(params, split_seeds=d >= 2)
     st_full = _State(X=pts.reshape(-1, 3), U=rays.reshape(-1, 3), S=sig.ravel(), hk=np.zeros(0, np.int64),
                      params=params)
     if d == 1:
@@ -1335,7 +1363,7 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
     edges[crease] |= np.uint8(EdgeType.CREASE)
     labels = _peel_weak(labels, params.min_region_pixels, jump_h, jump_v)
     labels, patches = _finalise(labels, st_full, params, declared.ravel())
-    return Segmentation(labels, hk, cur.H, cur.K, cur.sigma_H, cur.sigma_K, cur.normals, edges, patches)
+    return Segmentation(labels, hk, cur.H, cur.K, cur.sigma_H, cur.sigma_K, cur.normals, edges, patches, scale)
 
 
 def _split_disconnected(labels: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -131,7 +131,6 @@ def test_box_faces_are_plan(boxes):
     assert sum(p.n_pixels for p in desc.patches if p.label == "PLAN") >= 0.6 * n
 
 
-@pytest.mark.xfail(strict=False, reason=SEGMENTATION_XFAIL)
 def test_mug_table_is_one_plan_patch(mug):
     loaded, desc = mug
     pts = loaded.scan.points.reshape(-1, 3)
@@ -164,7 +163,6 @@ def test_mug_body_is_cyl_with_pcl_radius(mug):
     assert any(abs(r - PCL_RADIUS) < 0.1 * PCL_RADIUS for r in radii), radii
 
 
-@pytest.mark.xfail(strict=False, reason=SEGMENTATION_XFAIL)
 def test_tunnel_wall_is_concave_cyl_and_floor_plan(tunnel):
     loaded, desc = tunnel
     n = loaded.info.n_valid
