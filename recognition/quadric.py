@@ -260,9 +260,22 @@ def _degenerate(n: int, reason: str, mean=None, scale: float = 1.0) -> QuadricFi
     )
 
 
-def taubin_fit(D: np.ndarray, G: np.ndarray, w: np.ndarray) -> tuple[np.ndarray | None, str]:
-    """Weighted Taubin fit (G. Taubin, PAMI 13(11), 1991) from :func:`design_matrices` of points in
-    normalised coordinates, weights ``w`` (N,): unit parameters (10,), or (None, why) for degenerate points."""
+# the gradient of the monomials is linear in (x, y, z, 1): grad_k m(y) = (x, y, z, 1) @ _GRAD[k]
+_GRAD = np.zeros((3, 4, 10))
+for _k, _entries in enumerate((((0, 0), (1, 3), (2, 4)), ((1, 1), (0, 3), (2, 5)), ((2, 2), (0, 4), (1, 5)))):
+    for _m, _j in _entries:
+        _GRAD[_k, _m, _j] = 2.0
+    _GRAD[_k, 3, 6 + _k] = 1.0
+
+
+def taubin_fit(D: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray | None, str]:
+    """Weighted Taubin fit (G. Taubin, PAMI 13(11), 1991): unit parameters (10,), or (None, why) for
+    degenerate points.
+
+    ``D`` the monomials (N, 10) of the points ``y`` (N, 3) in normalised coordinates, ``w`` (N,) weights.
+    The gradient scatter ``sum w |grad m|²`` is formed from the 4 x 4 moment matrix of ``(y, 1)``, the
+    gradient of the monomials being linear in it.
+    """
     sw = np.sqrt(w)[:, None]
     Dw = D * sw
     M = Dw.T @ Dw
@@ -271,8 +284,9 @@ def taubin_fit(D: np.ndarray, G: np.ndarray, w: np.ndarray) -> tuple[np.ndarray 
     if ev[1] < 1e-12:
         return None, ("points are coplanar, collinear or otherwise in a degenerate configuration: "
                       "quadric not unique")
-    Gw = G[:, :, :9] * sw[None]
-    N9 = np.einsum("ijk,ijl->kl", Gw, Gw)
+    Y = np.column_stack([y, np.ones(len(y))]) * sw
+    S4 = Y.T @ Y
+    N9 = sum(g.T @ S4 @ g for g in _GRAD)[:9, :9]
     # eliminate c: c = -M[9, :9] q / M[9, 9]
     S = M[:9, :9] - np.outer(M[:9, 9], M[9, :9]) / M[9, 9]
     S = 0.5 * (S + S.T)
@@ -372,7 +386,7 @@ def fit_quadric(
     y = d / scale
     s = sig / scale
     D, G = design_matrices(y)
-    p, why = taubin_fit(D, G, 1.0 / s**2)
+    p, why = taubin_fit(D, y, 1.0 / s**2)
     if p is None:
         return _degenerate(n, why, mean, scale)
     r, J = _sampson(p, D, G, s)

@@ -74,7 +74,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from recognition.derivatives import clean_windows, jump_pairs, norm3, quadratic_derivatives, savgol_kernels
-from recognition.quadric import design_matrices, taubin_fit
+from recognition.quadric import taubin_fit
 from recognition.surface_fit import (
     _MIN_GRAZING,
     PlaneFit,
@@ -84,6 +84,7 @@ from recognition.surface_fit import (
     normalisation_transform,
     plane_params,
     quadric_gradient,
+    quadric_monomials,
     ray_residuals,
 )
 
@@ -851,8 +852,8 @@ def _quick_fit(x: np.ndarray, u: np.ndarray, s: np.ndarray, planar: bool,
         mean = x.mean(axis=0)
         scale = float(np.sqrt(np.mean(np.sum((x - mean) ** 2, axis=1)))) or 1.0
         y = (x - mean) / scale
-        D, G = design_matrices(y)
-        pn, _ = taubin_fit(D, G, np.ones(len(y)))
+        D = quadric_monomials(y)
+        pn, _ = taubin_fit(D, y, np.ones(len(y)))
         if pn is None:
             _, V = np.linalg.eigh(D.T @ D)
             pn = V[:, 0]
