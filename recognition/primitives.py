@@ -380,7 +380,7 @@ def trimmed_chi2(r: np.ndarray, c: float = TRIM_SIGMA) -> float:
 def _stats(r: np.ndarray, d: np.ndarray, k: int, n_iter: int) -> dict:
     """Residual statistics from sigma-normalised residuals r (N,) and distances d (N,) in metres."""
     n = len(r)
-    chi2 = float(r @ r)
+    chi2 = float(np.sum(r * r))  # summed like trimmed_chi2 (rounding is monotone: chi2_trim <= chi2 exactly)
     return {"rms_m": float(np.sqrt(np.mean(d * d))), "rms_sigma": float(np.sqrt(chi2 / n)), "chi2": chi2,
             "n_points": n, "n_iter": n_iter, "chi2_trim": trimmed_chi2(r)}
 
