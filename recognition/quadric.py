@@ -53,6 +53,7 @@ __all__ = [
     "evaluate",
     "design_matrices",
     "taubin_fit",
+    "MONOMIAL_GRADIENT",
 ]
 
 # index pairs of the symmetric matrix entries carried by params 0..5
@@ -260,12 +261,12 @@ def _degenerate(n: int, reason: str, mean=None, scale: float = 1.0) -> QuadricFi
     )
 
 
-# the gradient of the monomials is linear in (x, y, z, 1): grad_k m(y) = (x, y, z, 1) @ _GRAD[k]
-_GRAD = np.zeros((3, 4, 10))
+# the gradient of the monomials is linear in (x, y, z, 1): grad_k m(y) = (x, y, z, 1) @ MONOMIAL_GRADIENT[k]
+MONOMIAL_GRADIENT = np.zeros((3, 4, 10))
 for _k, _entries in enumerate((((0, 0), (1, 3), (2, 4)), ((1, 1), (0, 3), (2, 5)), ((2, 2), (0, 4), (1, 5)))):
     for _m, _j in _entries:
-        _GRAD[_k, _m, _j] = 2.0
-    _GRAD[_k, 3, 6 + _k] = 1.0
+        MONOMIAL_GRADIENT[_k, _m, _j] = 2.0
+    MONOMIAL_GRADIENT[_k, 3, 6 + _k] = 1.0
 
 
 def taubin_fit(D: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray | None, str]:
@@ -286,7 +287,7 @@ def taubin_fit(D: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray 
                       "quadric not unique")
     Y = np.column_stack([y, np.ones(len(y))]) * sw
     S4 = Y.T @ Y
-    N9 = sum(g.T @ S4 @ g for g in _GRAD)[:9, :9]
+    N9 = sum(g.T @ S4 @ g for g in MONOMIAL_GRADIENT)[:9, :9]
     # eliminate c: c = -M[9, :9] q / M[9, 9]
     S = M[:9, :9] - np.outer(M[:9, 9], M[9, :9]) / M[9, 9]
     S = 0.5 * (S + S.T)

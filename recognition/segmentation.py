@@ -74,7 +74,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from recognition.derivatives import clean_windows, jump_pairs, norm3, quadratic_derivatives, savgol_kernels
-from recognition.quadric import taubin_fit
+from recognition.quadric import MONOMIAL_GRADIENT, taubin_fit
 from recognition.surface_fit import (
     _MIN_GRAZING,
     PlaneFit,
@@ -891,6 +891,123 @@ def _is_planar_counts(counts: np.ndarray) -> bool:
     return bool(cc.sum() == 0 or np.argmax(cc) == 0)
 
 
+# --------------------------------------------------------------------------------------------- batched fits
+# The quick fits of many groups at once (seeds, tiles, patches): one pass of numpy over all their points
+# instead of a Python loop of small fits. Same fits as :func:`_quick_fit`; points arrive sorted by group.
+
+_UPPER10 = np.triu_indices(10)
+_UPPER4 = np.triu_indices(4)
+
+
+def _group_sums(values: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Sums of ``values`` (N, ...) over the contiguous groups beginning at ``starts``."""
+    return np.add.reduceat(values, starts, axis=0)
+
+
+def _symmetric(upper: np.ndarray, n: int, iu) -> np.ndarray:
+    out = np.zeros((upper.shape[0], n, n))
+    out[:, iu[0], iu[1]] = upper
+    out[:, iu[1], iu[0]] = upper
+    return out
+
+
+def _plane_fits(X, U, S, gid, starts, cnt):
+    """Total-least-squares planes of the groups: parameters (G, 10) and per-point ray z-residuals (N,)."""
+    mean = _group_sums(X, starts) / cnt[:, None]
+    d = X - mean[gid]
+    C = _group_sums(d[:, [0, 0, 0, 1, 1, 2]] * d[:, [0, 1, 2, 1, 2, 2]], starts)
+    _, V = np.linalg.eigh(_symmetric(C, 3, np.triu_indices(3)))
+    n = V[:, :, 0]
+    f = np.einsum("ij,ij->i", d, n[gid])
+    gr = np.maximum(np.abs(np.einsum("ij,ij->i", U, n[gid])), _MIN_GRAZING)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = np.abs(f) / (gr * S)
+    P = np.zeros((len(cnt), 10))
+    P[:, 6:9] = n
+    P[:, 9] = -np.einsum("ij,ij->i", n, mean)
+    bad = cnt < 3
+    P[bad] = np.nan
+    z[bad[gid]] = np.inf
+    return P, np.where(np.isfinite(z), z, np.inf)
+
+
+def _quadric_fits(X, U, S, gid, starts, cnt):
+    """Taubin quadrics of the groups (unit-norm algebraic fit where Taubin's is undefined), in normalised
+    coordinates per group: parameters (G, 10) in metres and per-point ray z-residuals (N,)."""
+    G = len(cnt)
+    mean = _group_sums(X, starts) / cnt[:, None]
+    d = X - mean[gid]
+    scale = np.sqrt(_group_sums(np.einsum("ij,ij->i", d, d), starts) / cnt)
+    scale = np.where(scale > 0, scale, 1.0)
+    y = d / scale[gid, None]
+    D = quadric_monomials(y)
+    M = _symmetric(_group_sums(D[:, _UPPER10[0]] * D[:, _UPPER10[1]], starts), 10, _UPPER10)
+    Y = np.column_stack([y, np.ones(len(y))])
+    S4 = _symmetric(_group_sums(Y[:, _UPPER4[0]] * Y[:, _UPPER4[1]], starts), 4, _UPPER4)
+    N9 = np.einsum("kmi,gmn,knj->gij", MONOMIAL_GRADIENT, S4, MONOMIAL_GRADIENT)[:, :9, :9]
+    tr = np.trace(M, axis1=1, axis2=2)
+    ev = np.linalg.eigvalsh(M / np.where(tr > 0, tr, 1.0)[:, None, None])
+    evn = np.linalg.eigvalsh(N9)
+    ok = (ev[:, 1] >= 1e-12) & (evn[:, 0] > 1e-12 * np.maximum(evn[:, -1], 1e-300)) & (M[:, 9, 9] > 0)
+    N9 = np.where(ok[:, None, None], N9, np.eye(9))
+    m99 = np.where(ok, M[:, 9, 9], 1.0)
+    Sg = M[:, :9, :9] - M[:, :9, 9:10] @ M[:, 9:10, :9] / m99[:, None, None]
+    L = np.linalg.cholesky(N9)
+    A = np.linalg.solve(L, Sg)
+    A = np.linalg.solve(L, A.transpose(0, 2, 1))
+    _, W = np.linalg.eigh(0.5 * (A + A.transpose(0, 2, 1)))
+    q = np.linalg.solve(L.transpose(0, 2, 1), W[:, :, :1])[:, :, 0]
+    c = -np.einsum("gi,gi->g", M[:, 9, :9], q) / m99
+    pn = np.column_stack([q, c])
+    if not ok.all():
+        _, V = np.linalg.eigh(M[~ok])
+        pn[~ok] = V[:, :, 0]
+    pn /= np.linalg.norm(pn, axis=1, keepdims=True)
+    pp = pn[gid]
+    f = np.einsum("ij,ij->i", D, pp)
+    g = quadric_gradient(pp, y)
+    gr = np.abs(np.einsum("ij,ij->i", g, U))
+    floor = _MIN_GRAZING * norm3(g)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = scale[gid] * np.abs(f) / (np.maximum(gr, floor) * S)
+    P = np.empty((G, 10))
+    for k in range(G):
+        p = normalisation_transform(mean[k], scale[k]) @ pn[k]
+        P[k] = p / np.linalg.norm(p)
+    return P, np.where(np.isfinite(z), z, np.inf)
+
+
+def _quick_fits(idx_list: list[np.ndarray], planar: np.ndarray, st: _State):
+    """:func:`_quick_fit` of many groups (flat pixel indices each): parameters (G, 10), per-group z arrays.
+
+    Groups of fewer than 10 points get planes, as in :func:`_quick_fit`.
+    """
+    G = len(idx_list)
+    P = np.full((G, 10), np.nan)
+    zs: list[np.ndarray] = [np.zeros(0)] * G
+    cnt_all = np.array([len(i) for i in idx_list])
+    use_plane = np.asarray(planar, bool) | (cnt_all < 10)
+    for flag, fitter in ((True, _plane_fits), (False, _quadric_fits)):
+        sel = np.flatnonzero((use_plane == flag) & (cnt_all > 0))
+        if sel.size == 0:
+            continue
+        cnt = cnt_all[sel]
+        ix = np.concatenate([idx_list[k] for k in sel])
+        gid = np.repeat(np.arange(sel.size), cnt)
+        starts = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+        try:
+            Pk, z = fitter(st.X[ix], st.U[ix], st.S[ix], gid, starts, cnt)
+        except np.linalg.LinAlgError:  # a numerically singular group: fit them one by one
+            fits = [_quick_fit(st.X[idx_list[k]], st.U[idx_list[k]], st.S[idx_list[k]], flag) for k in sel]
+            Pk, z = np.array([f[0] for f in fits]), np.concatenate([f[1] for f in fits])
+        P[sel] = Pk
+        for j, part in zip(sel, np.split(z, np.cumsum(cnt)[:-1]), strict=True):
+            zs[j] = part
+    for k in np.flatnonzero(cnt_all == 0):
+        zs[k] = np.zeros(0)
+    return P, zs
+
+
 def _fit_groups(groups: dict[int, np.ndarray], st: _State, n_labels: int, trim: float | None = None) -> np.ndarray:
     """Plane / quadric parameters (n_labels, 10) of each group (on a subsample of its pixels).
 
@@ -898,22 +1015,33 @@ def _fit_groups(groups: dict[int, np.ndarray], st: _State, n_labels: int, trim: 
     3x the median residual): a few points of another surface ruin an algebraic quadric fit.
     """
     P = np.full((max(n_labels, 1), 10), np.nan)
-    for lab, idx in groups.items():
-        sub = _subsample(idx, st.params.max_fit_points)
-        counts = np.bincount(st.hk[idx], minlength=5)
-        planar = _is_planar_counts(counts)
-        P[lab], z = _quick_fit(st.X[sub], st.U[sub], st.S[sub], planar)
-        if planar and sub.size >= 20 and not _rms(z) <= st.params.merge_k:
-            # not a plane after all: curvature undefined (thin pipes: every window crosses a jump) or within
-            # its noise (a pipe seen close up by a fine-grained sensor, whose windows span a few mm)
-            pq, zq = _quick_fit(st.X[sub], st.U[sub], st.S[sub], False)
-            if _rms(zq) < 0.5 * _rms(z):
-                planar, P[lab], z = False, pq, zq
-        if trim is not None and sub.size >= 10:
-            keep = z <= max(trim, 3.0 * float(np.median(z)))
-            if 10 <= keep.sum() < sub.size:
-                sub = sub[keep]
-                P[lab], _ = _quick_fit(st.X[sub], st.U[sub], st.S[sub], planar)
+    if not groups:
+        return P
+    labs = list(groups)
+    subs = [_subsample(groups[k], st.params.max_fit_points) for k in labs]
+    planar = np.array([_is_planar_counts(np.bincount(st.hk[groups[k]], minlength=5)) for k in labs])
+    Pg, zs = _quick_fits(subs, planar, st)
+    # not a plane after all: curvature undefined (thin pipes: every window crosses a jump) or within its
+    # noise (a pipe seen close up by a fine-grained sensor, whose windows span a few mm)
+    rms = [_rms(z) for z in zs]
+    retry = [k for k in range(len(labs)) if planar[k] and subs[k].size >= 20 and not rms[k] <= st.params.merge_k]
+    if retry:
+        Pq, zq = _quick_fits([subs[k] for k in retry], np.zeros(len(retry), bool), st)
+        for j, k in enumerate(retry):
+            if _rms(zq[j]) < 0.5 * rms[k]:
+                planar[k], Pg[k], zs[k] = False, Pq[j], zq[j]
+    if trim is not None:
+        redo = []
+        for k in range(len(labs)):
+            if subs[k].size < 10:
+                continue
+            keep = zs[k] <= max(trim, 3.0 * float(np.median(zs[k])))
+            if 10 <= keep.sum() < subs[k].size:
+                subs[k] = subs[k][keep]
+                redo.append(k)
+        if redo:
+            Pg[redo], _ = _quick_fits([subs[k] for k in redo], planar[redo], st)
+    P[labs] = Pg
     return P
 
 

@@ -206,12 +206,12 @@ def test_automatic_rank_truncates_cylinders_only():
 
 def test_gradient_scatter_from_moments_equals_the_explicit_sum():
     # taubin_fit forms sum w G'G from the 4x4 moments of (y, 1): the same matrix as the explicit sum
-    from recognition.quadric import _GRAD, design_matrices
+    from recognition.quadric import MONOMIAL_GRADIENT, design_matrices
 
     y = np.random.default_rng(0).normal(size=(50, 3))
     w = np.random.default_rng(1).uniform(0.5, 2.0, 50)
     _, G = design_matrices(y)
     explicit = np.einsum("kn,kni,knj->ij", np.broadcast_to(w, (3, 50)), G, G)
     Y = np.column_stack([y, np.ones(50)])
-    from_moments = np.einsum("kmi,mn,knj->ij", _GRAD, (Y * w[:, None]).T @ Y, _GRAD)
+    from_moments = np.einsum("kmi,mn,knj->ij", MONOMIAL_GRADIENT, (Y * w[:, None]).T @ Y, MONOMIAL_GRADIENT)
     np.testing.assert_allclose(from_moments, explicit, rtol=1e-12, atol=1e-12)

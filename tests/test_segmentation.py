@@ -447,3 +447,28 @@ def test_quick_quadric_fit_of_a_small_piece_of_cylinder_is_within_the_noise():
     _, z = _quick_fit(tile, rays, np.full(len(tile), sigma), planar=False)
     assert len(tile) == 144
     assert np.sqrt(np.mean(z**2)) < 1.5
+
+
+def test_batched_quick_fits_equal_one_by_one_fits():
+    # _fit_groups fits all groups in one numpy pass; each group's fit is the one _quick_fit gives alone
+    from recognition.segmentation import _quick_fit, _quick_fits, _State
+
+    surfaces = [S.plane([0, 0, 2.5], [0.2, 0, -1.0], 1), S.cylinder([0.3, 0, 2.0], [0, 1, 0.2], 0.2, 3.0, 2)]
+    pts, sig, ids = S.render(surfaces, CAM, 5e-4, np.random.default_rng(4))
+    X = pts.reshape(-1, 3)
+    st = _State(X=X, U=X / np.linalg.norm(X, axis=1, keepdims=True), S=np.full(len(X), 5e-4),
+                hk=np.zeros(len(X), np.int64), params=SegmentationParams())
+    flat = ids.ravel()
+    groups = [np.flatnonzero(flat == 1)[::7], np.flatnonzero(flat == 2)[::5], np.flatnonzero(flat == 2)[:60],
+              np.flatnonzero(flat == 1)[:5], np.zeros(0, np.int64)]
+    for planar in (True, False):
+        P, zs = _quick_fits(groups, np.full(len(groups), planar), st)
+        for k, idx in enumerate(groups):
+            if not planar and k == 0:
+                continue  # a quadric through a plane is not unique (any plane pair containing it): no one answer
+            if idx.size == 0:
+                assert zs[k].size == 0
+                continue
+            p, z = _quick_fit(X[idx], st.U[idx], st.S[idx], planar)
+            np.testing.assert_allclose(zs[k], z, rtol=1e-6, atol=1e-9)
+            np.testing.assert_allclose(P[k], p * np.sign(p @ P[k]), rtol=1e-6, atol=1e-9)
