@@ -1028,7 +1028,8 @@ def _fit_groups(groups: dict[int, np.ndarray], st: _State, n_labels: int, trim: 
     if retry:
         Pq, zq = _quick_fits([subs[k] for k in retry], np.zeros(len(retry), bool), st)
         for j, k in enumerate(retry):
-            if _rms(zq[j]) < 0.5 * rms[k]:
+            # ... but not two faces across a blurred crease, which a plane pair fits exactly
+            if _rms(zq[j]) < 0.5 * rms[k] and not _is_plane_pair(Pq[j], st.X[subs[k]], _PLANE_PAIR_TOL):
                 planar[k], Pg[k], zs[k] = False, Pq[j], zq[j]
     if trim is not None:
         redo = []
@@ -1043,6 +1044,41 @@ def _fit_groups(groups: dict[int, np.ndarray], st: _State, n_labels: int, trim: 
             Pg[redo], _ = _quick_fits([subs[k] for k in redo], planar[redo], st)
     P[labs] = Pg
     return P
+
+
+# relative tolerance of the plane-pair test (rank and constant of the quadric); 0.05 and 0.15 gave the same
+# segmentations on the default suite
+_PLANE_PAIR_TOL = 0.05
+
+
+def _is_plane_pair(p: np.ndarray, x: np.ndarray, tol: float) -> bool:
+    """True when the quadric ``p`` (10,) is, over the extent of points ``x`` (N, 3), two intersecting planes.
+
+    ``A`` of rank 2 with eigenvalues of opposite signs, the linear term within its range and the canonical
+    constant near zero: ``(n1 . y)(n2 . y) = 0``. Each test is relative to the largest eigenvalue, on the
+    scale of the points' RMS radius ``R`` (``tol`` for the rank and constant).
+    """
+    if not np.all(np.isfinite(p)):
+        return False
+    A = np.array([[p[0], p[3], p[4]], [p[3], p[1], p[5]], [p[4], p[5], p[2]]])
+    b = p[6:9]
+    mean = x.mean(axis=0)
+    R = float(np.sqrt(np.mean(np.sum((x - mean) ** 2, axis=1)))) or 1.0
+    # in centred coordinates: f = y'Ay + (2 A mean + b)'y + f(mean)
+    b0 = 2 * A @ mean + b
+    c0 = float(mean @ A @ mean + b @ mean + p[9])
+    lam, V = np.linalg.eigh(A)
+    order = np.argsort(-np.abs(lam))
+    lam, V = lam[order], V[:, order]
+    l1 = abs(lam[0])
+    if l1 == 0 or abs(lam[2]) > tol * l1 or lam[0] * lam[1] >= 0:
+        return False
+    bv = V.T @ b0
+    if abs(bv[2]) > tol * l1 * R:
+        return False
+    t = -0.5 * bv[:2] / lam[:2]  # centre within the range of A
+    c_cano = c0 + 0.5 * float(bv[:2] @ t)
+    return abs(c_cano) <= tol * l1 * R * R
 
 
 def _neighbour_links(shape, valid, jump_h, jump_v):

@@ -472,3 +472,35 @@ def test_batched_quick_fits_equal_one_by_one_fits():
             p, z = _quick_fit(X[idx], st.U[idx], st.S[idx], planar)
             np.testing.assert_allclose(zs[k], z, rtol=1e-6, atol=1e-9)
             np.testing.assert_allclose(P[k], p * np.sign(p @ P[k]), rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("angle_deg", [90.0, 150.0, 170.0])
+def test_plane_pair_is_recognised_and_other_quadrics_are_not(angle_deg):
+    from recognition.quadric import quadric_params
+    from recognition.segmentation import _is_plane_pair
+
+    rng = np.random.default_rng(5)
+    T = rng.normal(size=3)
+    R, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    x = rng.uniform(-0.5, 0.5, size=(200, 3)) @ R.T + T  # points spanning the quadric's neighbourhood
+
+    def moved(A, b, c):
+        # the quadric y'Ay + b'y + c = 0 in coordinates y = R'(x - T)
+        A2 = R @ A @ R.T
+        b2 = R @ b - 2 * A2 @ T
+        return quadric_params(A2, b2, float(c + T @ A2 @ T - (R @ b) @ T))
+
+    a = np.deg2rad(angle_deg)
+    n1, n2 = np.array([0, 0, 1.0]), np.array([np.sin(a), 0, np.cos(a)])
+    pair = moved(0.5 * (np.outer(n1, n2) + np.outer(n2, n1)), np.zeros(3), 0.0)
+    assert _is_plane_pair(pair, x, 0.05)
+    others = {
+        "cylinder": moved(np.diag([1.0, 1.0, 0.0]), np.zeros(3), -0.09),
+        "sphere": moved(np.eye(3), np.zeros(3), -0.25),
+        "cone": moved(np.diag([1.0, 1.0, -0.3]), np.zeros(3), 0.0),
+        "hyperbolic cylinder": moved(np.diag([1.0, -1.0, 0.0]), np.zeros(3), -0.2),
+        "saddle": moved(np.diag([1.0, -1.0, 0.0]), np.array([0, 0, 1.0]), 0.0),
+        "plane": moved(np.zeros((3, 3)), np.array([0, 0, 1.0]), -0.1),
+    }
+    for name, p in others.items():
+        assert not _is_plane_pair(p, x, 0.05), name
