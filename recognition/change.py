@@ -284,7 +284,7 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
                 continue
             sizes = {p.id: p.n_pixels for p in description.patches}
             altered = _altered_by_patches(f, [q for q in overlapping if sizes[q] >= params.altered_min_pixels],
-                                          patch_prims, params)
+                                          patch_prims, sizes, params)
             claimed.update(overlapping)
             if altered:
                 results[fid] = FeatureChange("altered", None, tuple(altered), found, revealed, occluded,
@@ -444,15 +444,20 @@ def _overlapping_patches(labels_on_feature: np.ndarray, description: SceneDescri
     return [int(i) for i, c in zip(ids, counts, strict=True) if c >= min_share * sizes.get(int(i), 1)]
 
 
-def _altered_by_patches(f: Feature, patch_ids: list[int], prims: dict, params: ChangeParams) -> list[int]:
+def _altered_by_patches(f: Feature, patch_ids: list[int], prims: dict, sizes: dict[int, int],
+                        params: ChangeParams) -> list[int]:
     """Patches on the feature whose fitted shape parameters disagree with it (radius of every observed
-    cylinder and sphere, cone half-angle: DESIGN 6.4)."""
-    out = []
+    cylinder and sphere, cone half-angle: DESIGN 6.4), when they outweigh (in pixels) the patches that
+    agree: one odd fit at a feature's rim does not alter a feature its other patches confirm."""
+    agree, disagree = 0, []
     for pid in patch_ids:
         prim = prims.get(pid)
-        if prim is not None and _same_shape(f, prim, params.radius_tolerance) is False:
-            out.append(pid)
-    return out
+        same = None if prim is None else _same_shape(f, prim, params.radius_tolerance)
+        if same is False:
+            disagree.append(pid)
+        elif same:
+            agree += sizes[pid]
+    return disagree if sum(sizes[q] for q in disagree) > agree else []
 
 
 def _same_place(f: Feature, prim: dict, allowance_m: float) -> bool:
