@@ -10,6 +10,7 @@ decided here from the truth (:func:`constrains_pose`), never by the core.
 from __future__ import annotations
 
 import math
+from collections.abc import Collection
 
 import numpy as np
 
@@ -123,8 +124,12 @@ def pose_section(result, truth_T_world_sensor: np.ndarray, median_true_range_m: 
 
 
 def constrains_pose(truth: ScanTruth, model: SceneModel, min_pixels: int = 200, *, sigma_angle: float = 0.01,
-                    sigma_pos_m: float = 0.01, max_sigma: float = 0.1) -> bool:
+                    sigma_pos_m: float = 0.01, max_sigma: float = 0.1, exclude: Collection[str] = ()) -> bool:
     """Whether the truth surfaces visible with >= ``min_pixels`` constrain all 6 DOF of the pose.
+
+    ``exclude`` names features that cannot locate the sensor against the a priori model: those the
+    perturbation moved or added (a wall and a table seen with a moved pipe leave the pose free along the
+    wall, whatever the pipe shows).
 
     Every such surface contributes its exact constraint (plane face or cap: normal and offset; cylinder and
     cone side: axis line, the cone also its position along the axis; sphere: centre; torus: axis line and
@@ -147,7 +152,7 @@ def constrains_pose(truth: ScanTruth, model: SceneModel, min_pixels: int = 200, 
             continue
         surf = truth.surfaces[sid]
         f = by_id.get(surf.feature_id)
-        if f is None:
+        if f is None or surf.feature_id in exclude:
             continue
         f = f.transformed(T_sw)
         if isinstance(f, Plane):

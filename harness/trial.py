@@ -203,7 +203,9 @@ class TrialContext:
         self._apriori_at_truth = None
         self.object_of = {f.id: o.id for m in (prepared.apriori, prepared.actual) for o in m.objects
                           for f in o.features}
-        self.constrained = bool(constrains_pose(truth, prepared.actual))
+        changes = prepared.change_truth
+        displaced = {fid for fid, c in changes.features.items() if c.label == "moved"} | set(changes.new_features)
+        self.constrained = bool(constrains_pose(truth, prepared.actual, exclude=displaced))
 
     @property
     def apriori_at_truth(self):
