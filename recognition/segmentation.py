@@ -1114,29 +1114,35 @@ def _grow(labels: np.ndarray, P: np.ndarray, st: _State, links, max_iter: int, t
     nb = np.stack(nb)  # (4, n)
     x = st.X[cand]
     s = st.S[cand]
-    active = np.ones(cand.size, bool)
+    where = np.full(H * W, -1, np.int64)  # candidate index of each pixel
+    where[cand] = np.arange(cand.size)
+    # the front: candidates with a labelled neighbour; after the first pass only those next to a pixel just
+    # labelled (a candidate whose neighbours did not change would be rejected again)
+    fi = np.flatnonzero((np.where(nb >= 0, flat[np.maximum(nb, 0)], -1) >= 0).any(axis=0))
     for _ in range(max_iter):
-        nl = np.where(nb >= 0, flat[np.maximum(nb, 0)], -1)
-        nl[:, ~active] = -1
-        front = (nl >= 0).any(axis=0)
-        fi = np.flatnonzero(front)
         if fi.size == 0:
             break
+        nbf = nb[:, fi]
+        nl = np.where(nbf >= 0, flat[np.maximum(nbf, 0)], -1)
         z = np.full((4, fi.size), np.inf)
         for k in range(4):
-            m = nl[k, fi] >= 0
+            m = nl[k] >= 0
             if m.any():
-                pk = P[nl[k, fi[m]]]
+                pk = P[nl[k, m]]
                 _, _, zz = ray_residuals(pk, x[fi[m]], s[fi[m]])
                 z[k, m] = np.where(np.isfinite(zz), np.abs(zz), np.inf)
         best = np.argmin(z, axis=0)
-        zb = z[best, np.arange(fi.size)]
-        acc = zb <= thr
+        acc = z[best, np.arange(fi.size)] <= thr
         if not acc.any():
             break
-        sel = fi[acc]
-        flat[cand[sel]] = nl[best[acc], sel]
-        active[sel] = False
+        new = cand[fi[acc]]
+        flat[new] = nl[best[acc], np.flatnonzero(acc)]
+        r_new, c_new = np.divmod(new, W)
+        around = np.concatenate([new[c_new > 0] - 1, new[c_new < W - 1] + 1, new[r_new > 0] - W,
+                                 new[r_new < H - 1] + W])
+        ci = np.unique(where[around])
+        ci = ci[ci >= 0]
+        fi = ci[flat[cand[ci]] < 0]
 
 
 def _link_components(mask: np.ndarray, jump_h: np.ndarray, jump_v: np.ndarray) -> np.ndarray:
@@ -1215,46 +1221,55 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
         _, z = _quick_fit(st.X[subs[k]], st.U[subs[k]], st.S[subs[k]], True, want_params=False)
         return _rms(z) <= thr
 
-    flats = {k: flat(k) for k in members}
+    keys = list(members)
+    _, z_plane = _quick_fits([subs[k] for k in keys], np.ones(len(keys), bool), st)
+    flats = {k: _rms(z) <= thr for k, z in zip(keys, z_plane, strict=True)}
     version = dict.fromkeys(members, 0)
     nbrs: dict[int, set[int]] = {k: set() for k in members}
     for a, b in _adjacency(labels, jump_h, jump_v):
         nbrs[a].add(b)
         nbrs[b].add(a)
 
-    def cost(a: int, b: int) -> float:
-        if st.params.class_min_pixels and _class_boundary(counts[a], counts[b], st.params.class_min_pixels):
-            return float("inf")
-        sa, sb = subs[a], subs[b]
-        if sa.size < sb.size:
-            sa, sb = sb, sa
-        sub = np.concatenate([sa, sb])
-        # two planes (by class, or by fit: crease pixels make a face look curved) merge only as one plane,
-        # never as the plane pair a general quadric fits exactly
-        planar = (_is_planar_counts(counts[a]) and _is_planar_counts(counts[b])) or (flats[a] and flats[b])
-        _, z = _quick_fit(st.X[sub], st.U[sub], st.S[sub], planar, want_params=False)
-        rms_all, rms_small = _rms(z), _rms(z[sa.size:])
-        return rms_all if rms_small <= 1.5 * thr else float("inf")
+    def costs(pairs: list[tuple[int, int]]) -> list[float]:
+        """RMS residual of the union fit of each pair (inf when the smaller part does not fit it), all fitted
+        in one batch."""
+        out = [float("inf")] * len(pairs)
+        todo, unions, planar, n_large = [], [], [], []
+        for i, (a, b) in enumerate(pairs):
+            if st.params.class_min_pixels and _class_boundary(counts[a], counts[b], st.params.class_min_pixels):
+                continue
+            sa, sb = subs[a], subs[b]
+            if sa.size < sb.size:
+                sa, sb = sb, sa
+            todo.append(i)
+            unions.append(np.concatenate([sa, sb]))
+            n_large.append(sa.size)
+            # two planes (by class, or by fit: crease pixels make a face look curved) merge only as one
+            # plane, never as the plane pair a general quadric fits exactly
+            planar.append((_is_planar_counts(counts[a]) and _is_planar_counts(counts[b])) or (flats[a] and flats[b]))
+        if todo:
+            _, zs = _quick_fits(unions, np.array(planar), st)
+            for i, z, n in zip(todo, zs, n_large, strict=True):
+                if _rms(z[n:]) <= 1.5 * thr:
+                    out[i] = _rms(z)
+        return out
 
     heap: list[tuple[float, int, int, int, int]] = []
 
-    def push(a: int, b: int) -> None:
-        a, b = min(a, b), max(a, b)
-        c = cost(a, b)
-        if c <= thr:
-            heapq.heappush(heap, (c, a, b, version[a], version[b]))
+    def push(pairs: list[tuple[int, int]]) -> None:
+        pairs = [(min(a, b), max(a, b)) for a, b in pairs]
+        for (a, b), c in zip(pairs, costs(pairs), strict=True):
+            if c <= thr:
+                heapq.heappush(heap, (c, a, b, version[a], version[b]))
 
-    for a in nbrs:
-        for b in nbrs[a]:
-            if a < b:
-                push(a, b)
+    push([(a, b) for a in nbrs for b in sorted(nbrs[a]) if a < b])
     parent = np.arange(max(members) + 1)
     while heap:
         _, a, b, va, vb = heapq.heappop(heap)
         if a not in members or b not in members:
             continue
         if va != version[a] or vb != version[b]:
-            push(a, b)
+            push([(a, b)])
             continue
         members[a] = np.concatenate([members[a], members.pop(b)])
         subs[a] = _subsample(np.sort(members[a]), nmax)
@@ -1270,8 +1285,7 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
         for q in nb_b - {a}:
             nbrs[q].discard(b)
             nbrs[q].add(a)
-            if q not in old:
-                push(a, q)
+        push([(a, q) for q in sorted(nb_b - {a}) if q not in old])
     out = labels.copy()
     m = out >= 0
     out[m] = parent[out[m]]
