@@ -970,10 +970,15 @@ def _quadric_fits(X, U, S, gid, starts, cnt):
     floor = _MIN_GRAZING * norm3(g)
     with np.errstate(invalid="ignore", divide="ignore"):
         z = scale[gid] * np.abs(f) / (np.maximum(gr, floor) * S)
+    # back to metres (normalisation_transform of every group at once): A / s², b / s - 2 A m / s², ...
+    Ay = pn[:, [0, 3, 4, 3, 1, 5, 4, 5, 2]].reshape(G, 3, 3)
+    Am = np.einsum("gij,gj->gi", Ay, mean)
+    is2 = 1.0 / scale**2
     P = np.empty((G, 10))
-    for k in range(G):
-        p = normalisation_transform(mean[k], scale[k]) @ pn[k]
-        P[k] = p / np.linalg.norm(p)
+    P[:, :6] = pn[:, :6] * is2[:, None]
+    P[:, 6:9] = pn[:, 6:9] / scale[:, None] - 2.0 * Am * is2[:, None]
+    P[:, 9] = np.einsum("gi,gi->g", mean, Am) * is2 - np.einsum("gi,gi->g", pn[:, 6:9], mean) / scale + pn[:, 9]
+    P /= np.linalg.norm(P, axis=1, keepdims=True)
     return P, np.where(np.isfinite(z), z, np.inf)
 
 
@@ -1113,6 +1118,7 @@ def _grow(labels: np.ndarray, P: np.ndarray, st: _State, links, max_iter: int, t
         nb.append(nidx)
     nb = np.stack(nb)  # (4, n)
     x = st.X[cand]
+    u = st.U[cand]
     s = st.S[cand]
     where = np.full(H * W, -1, np.int64)  # candidate index of each pixel
     where[cand] = np.arange(cand.size)
@@ -1128,9 +1134,8 @@ def _grow(labels: np.ndarray, P: np.ndarray, st: _State, links, max_iter: int, t
         for k in range(4):
             m = nl[k] >= 0
             if m.any():
-                pk = P[nl[k, m]]
-                _, _, zz = ray_residuals(pk, x[fi[m]], s[fi[m]])
-                z[k, m] = np.where(np.isfinite(zz), np.abs(zz), np.inf)
+                sel = fi[m]
+                z[k, m] = _pixel_residuals(P, nl[k, m], x[sel], u[sel], s[sel])
         best = np.argmin(z, axis=0)
         acc = z[best, np.arange(fi.size)] <= thr
         if not acc.any():
@@ -1615,11 +1620,11 @@ def _edge_image(shape, jump_h, jump_v) -> np.ndarray:
 
 
 def _upsampler(shape: tuple[int, int], d: int):
-    rows = np.arange(shape[0]) // d
-    cols = np.arange(shape[1]) // d
+    """Nearest-neighbour upsampling by ``d`` of a grid sampled at ``[::d, ::d]`` back to ``shape``."""
+    H, W = shape
 
     def up(a: np.ndarray) -> np.ndarray:
-        return a[rows[:, None], cols[None, :]]
+        return a.repeat(d, axis=0).repeat(d, axis=1)[:H, :W]
     return up
 
 
