@@ -524,8 +524,21 @@ def _within_angle(f: Feature, prim: dict, max_deg: float) -> bool:
 
 def _propagate_rigid_moves(model: SceneModel, results: dict[str, FeatureChange], revealed_share: float = 0.1) -> None:
     """Objects move as a whole: in an object with a moved feature, a feature left 'unchanged' whose predicted
-    place is partly revealed (background seen where it should be) moved with it."""
+    place is partly revealed (background seen where it should be) moved with it.
+
+    An object with a feature whose fitted shape differs (``altered``: a pipe run of another radius) is
+    altered as a whole instead: its features found displaced (an elbow or reducer, whose shape is not
+    compared, sits a radius change away from where the model has it) or partly revealed are altered too.
+    """
     for obj in model.objects:
+        if any(results[f.id].label == "altered" for f in obj.features):
+            for f in obj.features:
+                r = results[f.id]
+                if r.label == "moved" or (r.label == "unchanged" and
+                                          r.revealed >= revealed_share * max(r.found + r.revealed, 1)):
+                    results[f.id] = FeatureChange("altered", None, r.patches, r.found, r.revealed, r.occluded,
+                                                  "its object's shape changed")
+            continue
         moved = [results[f.id] for f in obj.features if results[f.id].label == "moved"]
         if not moved or obj.kind == "pipe_run" and len(moved) < 2:
             continue  # one moved section of a pipe run is a section move, not an object move
