@@ -295,39 +295,48 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
             results[fid] = FeatureChange("unobserved", None, (), found, revealed, occluded)
             pending.append(fid)
 
-    # loose matching for the features not found at their predicted place
-    for fid in pending:
-        f = by_id[fid]
-        prev = results[fid]
-        cand = [p for p in description.patches if p.id not in claimed and p.n_pixels >= params.min_pixels
-                and _compatible(p.label, f)]
-        # the neighbourhood covers a move of the feature's object: a translation plus a turn of up to the loose
-        # angle about the object's centre, which moves the ends of a long feature further than its middle
-        reach = loose_d + math.sin(math.radians(params.loose_angle_deg)) * f.size()
-        verdict = None
-        best = math.inf
-        for p in cand:
-            prim = patch_prims.get(p.id) or {}
-            dist = float(np.median(f.surface_distance(_patch_world(p, T))))
-            allow = max(float(np.median(allowance.reshape(-1)[p.pixels])), 1e-3)
-            place = _same_place(f, prim, allow)
-            same = _same_shape(f, prim, params.radius_tolerance)
-            if place and same is False:
-                if dist < best:
-                    best, verdict = dist, FeatureChange("altered", None, (p.id,), prev.found, prev.revealed,
-                                                        prev.occluded, "same place, other shape parameters")
-            elif same is not False and dist <= reach and _within_angle(f, prim, params.loose_angle_deg):
-                if dist < best:
-                    best, verdict = dist, FeatureChange("moved", _displacement(f, prim, dist), (p.id,),
-                                                        prev.found, prev.revealed, prev.occluded,
-                                                        "found in the loose neighbourhood")
-        if verdict is not None:
-            fragments = _fragments_of(verdict.patches[0], description, patch_prims, claimed, T, allowance, f)
-            results[fid] = replace(verdict, patches=verdict.patches + fragments)
-            claimed.update(results[fid].patches)
-        elif prev.found + prev.revealed >= params.min_pixels:
-            results[fid] = FeatureChange("missing", None, (), prev.found, prev.revealed, prev.occluded,
-                                         "predicted visible, background revealed")
+    # loose matching for the features not found at their predicted place, in two passes: first only patches
+    # whose fitted shape confirms (or, in place, contradicts) the feature's, then any compatible patch - a
+    # reducer must not take the moved pipe's own patch before the pipe is looked for
+    decided: set[str] = set()
+    for confirmed_only in (True, False):
+        for fid in pending:
+            if fid in decided:
+                continue
+            f = by_id[fid]
+            prev = results[fid]
+            cand = [p for p in description.patches if p.id not in claimed and p.n_pixels >= params.min_pixels
+                    and _compatible(p.label, f)]
+            # the neighbourhood covers a move of the feature's object: a translation plus a turn of up to the
+            # loose angle about the object's centre, which moves the ends of a long feature further than its
+            # middle
+            reach = loose_d + math.sin(math.radians(params.loose_angle_deg)) * f.size()
+            verdict = None
+            best = math.inf
+            for p in cand:
+                prim = patch_prims.get(p.id) or {}
+                dist = float(np.median(f.surface_distance(_patch_world(p, T))))
+                allow = max(float(np.median(allowance.reshape(-1)[p.pixels])), 1e-3)
+                place = _same_place(f, prim, allow)
+                same = _same_shape(f, prim, params.radius_tolerance)
+                if place and same is False:
+                    if dist < best:
+                        best, verdict = dist, FeatureChange("altered", None, (p.id,), prev.found, prev.revealed,
+                                                            prev.occluded, "same place, other shape parameters")
+                elif (same if confirmed_only else same is not False) and dist <= reach and \
+                        _within_angle(f, prim, params.loose_angle_deg):
+                    if dist < best:
+                        best, verdict = dist, FeatureChange("moved", _displacement(f, prim, dist), (p.id,),
+                                                            prev.found, prev.revealed, prev.occluded,
+                                                            "found in the loose neighbourhood")
+            if verdict is not None:
+                fragments = _fragments_of(verdict.patches[0], description, patch_prims, claimed, T, allowance, f)
+                results[fid] = replace(verdict, patches=verdict.patches + fragments)
+                claimed.update(results[fid].patches)
+                decided.add(fid)
+            elif not confirmed_only and prev.found + prev.revealed >= params.min_pixels:
+                results[fid] = FeatureChange("missing", None, (), prev.found, prev.revealed, prev.occluded,
+                                             "predicted visible, background revealed")
 
     for f in model.features:  # predicted invisible
         results.setdefault(f.id, FeatureChange("unobserved", reason="not predicted visible"))
