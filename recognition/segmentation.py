@@ -1211,10 +1211,12 @@ def _class_boundary(ca: np.ndarray, cb: np.ndarray, min_pixels: int) -> bool:
 def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
     """Greedy best-first merging of adjacent patches whose union fits one surface (returns new labels).
 
-    A pair merges when the union's fit (plane when both patches are planar, quadric otherwise) has an RMS
-    range residual within ``merge_k`` sigma over the union and within ``1.5 merge_k`` over the smaller
-    part (a small fragment of another surface is not hidden by the larger patch's many good points).
-    Costs are re-evaluated lazily when a patch has changed since its pair was queued. With
+    A pair merges when the union's fit (plane when both patches are planar, by class or by fit; quadric
+    otherwise) has an RMS range residual within ``merge_k`` sigma over the union and within ``1.5 merge_k``
+    over the smaller part (a small fragment of another surface is not hidden by the larger patch's many good
+    points). With ``curved_planar_merge`` a planar pair that no plane fits is tried as a quadric, which must
+    not be a plane pair (:func:`_is_plane_pair`: two faces at a crease). Costs are computed in batches and
+    re-evaluated lazily when a patch has changed since its pair was queued. With
     ``class_min_pixels`` set, two patches whose dominant curvature classes are cylindrical and doubly curved
     never merge (:func:`_class_boundary`): at a tangent join (a pipe and its elbow, a tank and its dome) the
     class change is the only cue.
