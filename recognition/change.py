@@ -8,13 +8,16 @@ Given the scene description, the scan, the a priori model and the estimated pose
    within the noise plus a pose allowance that grows with range and incidence; otherwise it may lie on
    another model surface (a wall revealed behind a missing pipe), or on none (something new or moved).
 3. **Tight then loose matching**: a feature whose predicted pixels are mostly explained is present
-   (then ``altered`` if its fitted radius disagrees with the model); otherwise a scene patch of the same
-   kind at the same place with other shape parameters makes it ``altered``, one within a statistical
-   neighbourhood of the predicted position with the same parameters makes it ``moved`` (with its
-   displacement), and a revealed background makes it ``missing``. A feature that could not be seen
-   (occluded, out of view) is ``unobserved``, never ``missing``.
+   (then ``altered`` if the patches whose fitted radius disagrees with the model outweigh those that agree);
+   otherwise a scene patch of the same kind at the same place with other shape parameters makes it
+   ``altered``, one within a statistical neighbourhood of the predicted position with the same parameters
+   makes it ``moved`` (with its displacement), and a revealed background makes it ``missing``. Patches whose
+   fitted shape confirms a feature are paired first, then merely compatible ones. A feature that could not
+   be seen (occluded, out of view) is ``unobserved``, never ``missing``.
 4. **New**: scene patches made mostly of unexplained points and claimed by no model feature.
-5. **Objects** (the semantic layer): an object's label comes from counting its features' labels.
+5. **Objects** (the semantic layer): an object's label comes from counting its features' labels; objects
+   move as a whole (a feature of a moved object whose place is revealed moved with it), and an object with
+   an altered feature is altered as a whole (its elbows and reducers sit a radius change away).
 """
 
 from __future__ import annotations
