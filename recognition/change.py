@@ -306,32 +306,9 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
         for fid in pending:
             if fid in decided:
                 continue
-            f = by_id[fid]
-            prev = results[fid]
-            cand = [p for p in description.patches if p.id not in claimed and p.n_pixels >= params.min_pixels
-                    and _compatible(p.label, f)]
-            # the neighbourhood covers a move of the feature's object: a translation plus a turn of up to the
-            # loose angle about the object's centre, which moves the ends of a long feature further than its
-            # middle
-            reach = loose_d + math.sin(math.radians(params.loose_angle_deg)) * f.size()
-            verdict = None
-            best = math.inf
-            for p in cand:
-                prim = patch_prims.get(p.id) or {}
-                dist = float(np.median(f.surface_distance(_patch_world(p, T))))
-                allow = max(float(np.median(allowance.reshape(-1)[p.pixels])), 1e-3)
-                place = _same_place(f, prim, allow)
-                same = _same_shape(f, prim, params.radius_tolerance)
-                if place and same is False:
-                    if dist < best:
-                        best, verdict = dist, FeatureChange("altered", None, (p.id,), prev.found, prev.revealed,
-                                                            prev.occluded, "same place, other shape parameters")
-                elif (same if confirmed_only else same is not False) and dist <= reach and \
-                        _within_angle(f, prim, params.loose_angle_deg):
-                    if dist < best:
-                        best, verdict = dist, FeatureChange("moved", _displacement(f, prim, dist), (p.id,),
-                                                            prev.found, prev.revealed, prev.occluded,
-                                                            "found in the loose neighbourhood")
+            f, prev = by_id[fid], results[fid]
+            verdict = _loose_verdict(f, prev, description, patch_prims, claimed, T, allowance, loose_d,
+                                     confirmed_only, params)
             if verdict is not None:
                 fragments = _fragments_of(verdict.patches[0], description, patch_prims, claimed, T, allowance, f)
                 results[fid] = replace(verdict, patches=verdict.patches + fragments)
@@ -454,6 +431,40 @@ def _overlapping_patches(labels_on_feature: np.ndarray, description: SceneDescri
     ids, counts = np.unique(labels_on_feature[labels_on_feature >= 0], return_counts=True)
     sizes = {p.id: p.n_pixels for p in description.patches}
     return [int(i) for i, c in zip(ids, counts, strict=True) if c >= min_share * sizes.get(int(i), 1)]
+
+
+def _loose_verdict(f: Feature, prev: FeatureChange, description: SceneDescription, patch_prims: dict,
+                   claimed: set[int], T: np.ndarray, allowance: np.ndarray, loose_d: float, confirmed_only: bool,
+                   params: ChangeParams) -> FeatureChange | None:
+    """The closest unclaimed scene patch that shows feature ``f`` altered (same place, other shape) or moved
+    (same shape within the loose neighbourhood), as a verdict; None when there is none.
+
+    With ``confirmed_only``, a moved verdict needs a patch whose fitted shape confirms the feature's (not
+    merely one that cannot contradict it, like a cylinder patch for a cone feature).
+    """
+    cand = [p for p in description.patches if p.id not in claimed and p.n_pixels >= params.min_pixels
+            and _compatible(p.label, f)]
+    # the neighbourhood covers a move of the feature's object: a translation plus a turn of up to the loose
+    # angle about the object's centre, which moves the ends of a long feature further than its middle
+    reach = loose_d + math.sin(math.radians(params.loose_angle_deg)) * f.size()
+    verdict = None
+    best = math.inf
+    for p in cand:
+        prim = patch_prims.get(p.id) or {}
+        dist = float(np.median(f.surface_distance(_patch_world(p, T))))
+        allow = max(float(np.median(allowance.reshape(-1)[p.pixels])), 1e-3)
+        place = _same_place(f, prim, allow)
+        same = _same_shape(f, prim, params.radius_tolerance)
+        if place and same is False:
+            if dist < best:
+                best, verdict = dist, FeatureChange("altered", None, (p.id,), prev.found, prev.revealed,
+                                                    prev.occluded, "same place, other shape parameters")
+        elif (same if confirmed_only else same is not False) and dist <= reach and \
+                _within_angle(f, prim, params.loose_angle_deg):
+            if dist < best:
+                best, verdict = dist, FeatureChange("moved", _displacement(f, prim, dist), (p.id,), prev.found,
+                                                    prev.revealed, prev.occluded, "found in the loose neighbourhood")
+    return verdict
 
 
 def _altered_by_patches(f: Feature, patch_ids: list[int], prims: dict, sizes: dict[int, int],
