@@ -201,6 +201,18 @@ def _input_problem(pts: np.ndarray, sig: np.ndarray, n_min: int) -> str:
     return ""
 
 
+def _cylinder_cov(a: np.ndarray, cov5: np.ndarray) -> np.ndarray:
+    """Covariance (7, 7) of (point, axis, radius) from that (5, 5) of the local parameters: the axis turn
+    and the point shift along the two directions ``_perp_basis(a)`` perpendicular to the axis, and the
+    radius."""
+    e1, e2 = _perp_basis(a)
+    M = np.zeros((7, 5))
+    M[0:3, 2], M[0:3, 3] = e1, e2
+    M[3:6, 0], M[3:6, 1] = e1, e2
+    M[6, 4] = 1.0
+    return M @ cov5 @ M.T
+
+
 def _perp_basis(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors completing ``a`` (unit) to a right-handed orthonormal basis (no np.cross: speed)."""
     ax, ay, az = float(a[0]), float(a[1]), float(a[2])
@@ -823,12 +835,7 @@ def fit_cylinder(
             n, f"cylinder radius diverged ({R:.3g} m for a patch of {ext:.3g} m): planar patch")
     R = abs(R)
     cov5 = _local_cov(r, J, wts, 5)
-    e1, e2 = _perp_basis(a)
-    M = np.zeros((7, 5))
-    M[0:3, 2], M[0:3, 3] = e1, e2
-    M[3:6, 0], M[3:6, 1] = e1, e2
-    M[6, 4] = 1.0
-    cov = M @ cov5 @ M.T
+    cov = _cylinder_cov(a, cov5)
     d = _cyl_fun(state, pts, np.ones(n))[0]
     return CylinderFit(point=p, axis=a, radius=float(R), length=_axis_stats(pts, a, p), cov=cov,
                        radius_sigma=float(np.sqrt(cov5[4, 4])),
@@ -1079,12 +1086,7 @@ def refit_along_rays(fit, points: np.ndarray, sigma: np.ndarray, subrays: np.nda
         w8 = 1.0 / sig[ii] ** 2
         centroid = (w8 @ pts[ii]) / w8.sum()
         p = p + ((centroid - p) @ a) * a
-        e1, e2 = _perp_basis(a)
-        M = np.zeros((7, 5))
-        M[0:3, 2], M[0:3, 3] = e1, e2
-        M[3:6, 0], M[3:6, 1] = e1, e2
-        M[6, 4] = 1.0
-        cov = M @ cov_l @ M.T
+        cov = _cylinder_cov(a, cov_l)
         return CylinderFit(point=p, axis=a, radius=float(R), length=_axis_stats(pts, a, p), cov=cov,
                            radius_sigma=float(np.sqrt(cov_l[4, 4])),
                            axis_sigma_rad=float(np.sqrt(cov_l[0, 0] + cov_l[1, 1])), **st, ok=True)
