@@ -18,9 +18,11 @@ from recognition.pose import AxisPair, PlanePair, PointPair, free_dof_of, residu
 from scenes.features import Cone, Cylinder, Plane, Sphere, Torus
 from scenes.geometry import invert_transform
 from scenes.model import SceneModel
+from scenes.perturb import ChangeTruth
 from sensors.range_image import ScanTruth
 
 __all__ = ["rotation_error_deg", "translation_error_mm", "add_mm", "pose_section", "constrains_pose",
+           "displaced_features",
            "SUCCESS_ROTATION_DEG", "SUCCESS_TRANSLATION_FRACTION"]
 
 SUCCESS_ROTATION_DEG = 1.0
@@ -121,6 +123,12 @@ def pose_section(result, truth_T_world_sensor: np.ndarray, median_true_range_m: 
         "initial": {k: init[k] for k in ("rotation_error_deg", "translation_error_mm", "success")},
     })
     return out
+
+
+def displaced_features(changes: ChangeTruth) -> set[str]:
+    """Features of the actual scene that cannot locate the sensor against the a priori model: those the
+    perturbation moved, and the new ones (the ``exclude`` of :func:`constrains_pose`)."""
+    return {fid for fid, c in changes.features.items() if c.label == "moved"} | set(changes.new_features)
 
 
 def constrains_pose(truth: ScanTruth, model: SceneModel, min_pixels: int = 200, *, sigma_angle: float = 0.01,

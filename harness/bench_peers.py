@@ -36,8 +36,7 @@ CHANGE_LABELS = ("moved", "missing", "new", "altered")
 
 def _trials(suite_name: str, per_group: int):
     from harness.suite import load_suite
-    from harness.trial import TrialContext, prepare_scene, sensor_for, viewpoint_rng
-    from sensors.viewpoints import ViewpointSpec, sample_viewpoints
+    from harness.trial import TrialContext, prepare_scene, sensor_for, trial_scan, trial_viewpoints
 
     suite = load_suite(suite_name)
     seen: dict[str, int] = defaultdict(int)
@@ -47,12 +46,10 @@ def _trials(suite_name: str, per_group: int):
         seen[spec.group] += 1
         prepared = prepare_scene(spec, None)
         config = sensor_for(spec)
-        views = sample_viewpoints(prepared.simulator, prepared.actual, config.model, 1, viewpoint_rng(spec),
-                                  ViewpointSpec(min_surfaces=spec.min_view_surfaces, min_pixels=spec.min_view_pixels))
+        views = trial_viewpoints(spec, prepared, config)
         if not views.viewpoints:
             continue
-        scan, truth = prepared.simulator.simulate(config, views.viewpoints[0].T_world_sensor,
-                                                  np.random.default_rng([spec.suite_seed, spec.index]))
+        scan, truth = trial_scan(spec, prepared, config, views.viewpoints[0].T_world_sensor)
         yield spec, TrialContext(scan, truth, prepared)
 
 

@@ -23,13 +23,12 @@ def _stats(values):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from evaluation.pose import constrains_pose, pose_section
+    from evaluation.pose import constrains_pose, displaced_features, pose_section
     from harness.suite import suite_from_dict
-    from harness.trial import prepare_scene, sensor_for, viewpoint_rng
+    from harness.trial import prepare_scene, sensor_for, trial_scan, trial_viewpoints
     from recognition.describe import describe
     from recognition.localise import localise
     from sensors.simulate import Simulator
-    from sensors.viewpoints import ViewpointSpec, sample_viewpoints
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=10, help="viewpoints per perturbation seed and group")
@@ -48,12 +47,10 @@ def main(argv: list[str] | None = None) -> int:
     for spec in suite.trials:
         p = prepare_scene(spec, None)
         cfg = sensor_for(spec)
-        views = sample_viewpoints(p.simulator, p.actual, cfg.model, 1, viewpoint_rng(spec),
-                                  ViewpointSpec(min_surfaces=spec.min_view_surfaces, min_pixels=spec.min_view_pixels))
+        views = trial_viewpoints(spec, p, cfg)
         if not views.viewpoints:
             continue
-        scan, truth = p.simulator.simulate(cfg, views.viewpoints[0].T_world_sensor,
-                                           np.random.default_rng([spec.suite_seed, spec.index]))
+        scan, truth = trial_scan(spec, p, cfg, views.viewpoints[0].T_world_sensor)
         desc = describe(scan)
         if spec.scene not in sims:
             sims[spec.scene] = Simulator.from_scene(p.apriori)
@@ -63,7 +60,8 @@ def main(argv: list[str] | None = None) -> int:
         med_range = float(np.nanmedian(truth.true_range))
         pts = scan.points[::8, ::8].reshape(-1, 3)
         pts = pts[np.all(np.isfinite(pts), axis=1)]
-        sec = pose_section(res, truth.T_world_sensor, med_range, constrains_pose(truth, p.actual), pts)
+        sec = pose_section(res, truth.T_world_sensor, med_range, constrains_pose(
+            truth, p.actual, exclude=displaced_features(p.change_truth)), pts)
         t = res.timing_s
         sec["time_core_s"] = t["matching"] + t["pose"] + t["verification"] + t["icp"]
         sec["time_total_s"] = wall

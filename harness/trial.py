@@ -20,7 +20,7 @@ import numpy as np
 from evaluation.change import change_section
 from evaluation.oracles import truth_classification, truth_pairings, truth_segmentation
 from evaluation.patches import classification_section, segmentation_section
-from evaluation.pose import constrains_pose, pose_section
+from evaluation.pose import constrains_pose, displaced_features, pose_section
 from harness.suite import TrialPlan, TrialSpec
 from recognition.change import detect_changes
 from recognition.describe import DescribeParams, core_sigma, describe
@@ -127,6 +127,19 @@ def viewpoint_rng(spec: TrialSpec) -> np.random.Generator:
     return np.random.default_rng([spec.suite_seed, key, spec.perturbation_seed, spec.viewpoint])
 
 
+def trial_viewpoints(spec: TrialSpec, prepared: PreparedScene, config: SensorConfig):
+    """The trial's viewpoint sample (one viewpoint, or none with the rejection counts)."""
+    return sample_viewpoints(prepared.simulator, prepared.actual, config.model, 1, viewpoint_rng(spec),
+                             ViewpointSpec(min_surfaces=spec.min_view_surfaces, min_pixels=spec.min_view_pixels))
+
+
+def trial_scan(spec: TrialSpec, prepared: PreparedScene, config: SensorConfig,
+               T_world_sensor: np.ndarray) -> tuple[Scan, ScanTruth]:
+    """The trial's scan and truth from ``T_world_sensor``, with the trial's noise generator
+    ``default_rng([suite_seed, trial index])`` (no method in it: DESIGN 10.4)."""
+    return prepared.simulator.simulate(config, T_world_sensor, np.random.default_rng([spec.suite_seed, spec.index]))
+
+
 def run_trial(spec: TrialSpec, plan: TrialPlan, prepared: PreparedScene,
               artifacts_dir: Path | None = None) -> dict[str, Any]:
     """Run one trial on its prepared scene and return its record (plain JSON data).
@@ -137,14 +150,12 @@ def run_trial(spec: TrialSpec, plan: TrialPlan, prepared: PreparedScene,
     timing: dict[str, float | None] = dict.fromkeys(STAGES)
     config = sensor_for(spec)
     t0 = time.perf_counter()
-    views = sample_viewpoints(prepared.simulator, prepared.actual, config.model, 1, viewpoint_rng(spec),
-                              ViewpointSpec(min_surfaces=spec.min_view_surfaces, min_pixels=spec.min_view_pixels))
+    views = trial_viewpoints(spec, prepared, config)
     if not views.viewpoints:
         raise TrialFailure(f"no acceptable viewpoint in {views.attempts} attempts "
                            f"(rejected: {views.rejected})")
     view = views.viewpoints[0]
-    rng = np.random.default_rng([spec.suite_seed, spec.index])
-    scan, truth = prepared.simulator.simulate(config, view.T_world_sensor, rng)
+    scan, truth = trial_scan(spec, prepared, config, view.T_world_sensor)
     timing["sensor"] = time.perf_counter() - t0
     context = TrialContext(scan, truth, prepared)
     method_records = {}
@@ -203,9 +214,8 @@ class TrialContext:
         self._apriori_at_truth = None
         self.object_of = {f.id: o.id for m in (prepared.apriori, prepared.actual) for o in m.objects
                           for f in o.features}
-        changes = prepared.change_truth
-        displaced = {fid for fid, c in changes.features.items() if c.label == "moved"} | set(changes.new_features)
-        self.constrained = bool(constrains_pose(truth, prepared.actual, exclude=displaced))
+        self.constrained = bool(constrains_pose(truth, prepared.actual,
+                                                exclude=displaced_features(prepared.change_truth)))
 
     @property
     def apriori_at_truth(self):
