@@ -375,11 +375,15 @@ def test_dask_worker_killed_mid_run(suite_path, tmp_path):
     assert final["n_failed"] == 0, final["failures"]
 
 
-def test_a_second_ctrl_c_while_the_summary_is_written_does_not_cut_it(suite_path, tmp_path, monkeypatch):
+def test_a_second_ctrl_c_while_the_summary_is_written_does_not_cut_it(suite_path, tmp_path, monkeypatch, request):
     """Ctrl-C pressed again while the summary of an interrupted (or finished) run is being written: the summary
     is completed first, then the interrupt propagates."""
     import harness.run as run_module
 
+    # Ctrl-C must mean KeyboardInterrupt here, as in a terminal; a pytest started as a background job of a
+    # non-interactive shell inherits SIGINT ignored, and then a deferred interrupt is rightly dropped
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    request.addfinalizer(lambda: signal.signal(signal.SIGINT, previous))
     real = run_module.summarise
 
     def interrupted(*args, **kw):
