@@ -22,7 +22,7 @@ from scenes.perturb import ChangeTruth
 from sensors.range_image import ScanTruth
 
 __all__ = ["rotation_error_deg", "translation_error_mm", "add_mm", "pose_section", "constrains_pose",
-           "displaced_features",
+           "changed_features",
            "SUCCESS_ROTATION_DEG", "SUCCESS_TRANSLATION_FRACTION"]
 
 SUCCESS_ROTATION_DEG = 1.0
@@ -125,10 +125,16 @@ def pose_section(result, truth_T_world_sensor: np.ndarray, median_true_range_m: 
     return out
 
 
-def displaced_features(changes: ChangeTruth) -> set[str]:
-    """Features of the actual scene that cannot locate the sensor against the a priori model: those the
-    perturbation moved, and the new ones (the ``exclude`` of :func:`constrains_pose`)."""
-    return {fid for fid, c in changes.features.items() if c.label == "moved"} | set(changes.new_features)
+def changed_features(changes: ChangeTruth) -> set[str]:
+    """Features of the actual scene that cannot locate the sensor against the a priori model (the ``exclude``
+    of :func:`constrains_pose`): those the perturbation moved or altered, and the new ones.
+
+    An altered feature keeps its place but not its shape (a pipe of another radius, a smaller sphere): the
+    matching keys on shape invariants (DESIGN 6.3), so before the pose is known it is an unknown object; its
+    place can be read only once the unchanged part of the model has given the pose.
+    """
+    return {fid for fid, c in changes.features.items() if c.label in ("moved", "altered")} | \
+        set(changes.new_features)
 
 
 def constrains_pose(truth: ScanTruth, model: SceneModel, min_pixels: int = 200, *, sigma_angle: float = 0.01,
@@ -136,8 +142,8 @@ def constrains_pose(truth: ScanTruth, model: SceneModel, min_pixels: int = 200, 
     """Whether the truth surfaces visible with >= ``min_pixels`` constrain all 6 DOF of the pose.
 
     ``exclude`` names features that cannot locate the sensor against the a priori model: those the
-    perturbation moved or added (a wall and a table seen with a moved pipe leave the pose free along the
-    wall, whatever the pipe shows).
+    perturbation moved, altered or added (:func:`changed_features`; a wall and a table seen with a moved pipe
+    leave the pose free along the wall, whatever the pipe shows).
 
     Every such surface contributes its exact constraint (plane face or cap: normal and offset; cylinder and
     cone side: axis line, the cone also its position along the axis; sphere: centre; torus: axis line and

@@ -23,7 +23,7 @@ def _stats(values):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from evaluation.pose import constrains_pose, displaced_features, pose_section
+    from evaluation.pose import changed_features, constrains_pose, pose_section
     from harness.suite import suite_from_dict
     from harness.trial import prepare_scene, sensor_for, trial_scan, trial_viewpoints
     from recognition.describe import describe
@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
         pts = scan.points[::8, ::8].reshape(-1, 3)
         pts = pts[np.all(np.isfinite(pts), axis=1)]
         sec = pose_section(res, truth.T_world_sensor, med_range, constrains_pose(
-            truth, p.actual, exclude=displaced_features(p.change_truth)), pts)
+            truth, p.actual, exclude=changed_features(p.change_truth)), pts)
         t = res.timing_s
         sec["time_core_s"] = t["matching"] + t["pose"] + t["verification"] + t["icp"]
         sec["time_total_s"] = wall

@@ -20,7 +20,7 @@ import numpy as np
 from evaluation.change import change_section
 from evaluation.oracles import truth_classification, truth_pairings, truth_segmentation
 from evaluation.patches import classification_section, segmentation_section
-from evaluation.pose import constrains_pose, displaced_features, pose_section
+from evaluation.pose import changed_features, constrains_pose, pose_section
 from harness.suite import TrialPlan, TrialSpec
 from recognition.change import detect_changes
 from recognition.describe import DescribeParams, core_sigma, describe
@@ -215,7 +215,7 @@ class TrialContext:
         self.object_of = {f.id: o.id for m in (prepared.apriori, prepared.actual) for o in m.objects
                           for f in o.features}
         self.constrained = bool(constrains_pose(truth, prepared.actual,
-                                                exclude=displaced_features(prepared.change_truth)))
+                                                exclude=changed_features(prepared.change_truth)))
 
     @property
     def apriori_at_truth(self):
