@@ -29,7 +29,8 @@ misclassified patch). It is an interpretation tree cut at the depth where the po
   When no seed fixes 6 DOF, the largest partial assignments are returned as underconstrained hypotheses.
 
 Hypotheses are deduplicated by pose and ranked by the summed ``log(pixels)`` of their matched items; the
-caller verifies them (:mod:`recognition.verify`).
+list handed to the caller, who verifies them (:mod:`recognition.verify`), holds the best half by that score
+and, for every item, the best hypothesis that explains it (:func:`_diverse`).
 """
 
 from __future__ import annotations
@@ -81,7 +82,7 @@ class MatchParams:
     length_slack : visible lengths/extents may exceed the model's by this factor (segmentation bleed).
     max_wildcard_fraction, extra_wildcards : at most ``fraction * n_items + extra`` wildcards.
     max_nodes : node budget of the search (the limit that binds on ordinary scenes: deterministic).
-    max_hypotheses : at most this many hypotheses are returned (best score first).
+    max_hypotheses : at most this many hypotheses are returned (half by score, half the best per item).
     max_time_s : CPU time budget of the search (seconds of this process), a safety net for pathological
         inputs (the node budget binds first otherwise, so results do not depend on the machine's load): it
         stops with the best hypotheses found so far ...
@@ -846,9 +847,10 @@ class _Search:
     def finish(self, max_hypotheses: int) -> list[Hypothesis]:
         """The best leaves refined with all their pairs (a second completion under the refined pose); when no
         seed fixed 6 DOF, the largest partial assignments as underconstrained hypotheses."""
-        leaves = sorted(self.leaves, key=lambda h: (-h.score, h.pose.cost))
+        leaves = _diverse(sorted(self.leaves, key=lambda h: (-h.score, h.pose.cost)), self.order,
+                          2 * max_hypotheses)
         out: list[Hypothesis] = []
-        for h in leaves[: 2 * max_hypotheses]:
+        for h in leaves:
             T = h.pose.T_world_sensor
             ref = self.pose(list(h.pairs), T_init=T)
             if not ref:
@@ -879,6 +881,28 @@ class _Search:
                     out.append(Hypothesis(tuple(sorted(full)), hyps[0],
                                           float(sum(self.items[i].weight for i, _ in pairs)), len(pairs)))
         return out
+
+
+def _diverse(ranked: list[Hypothesis], order: list[int], n: int) -> list[Hypothesis]:
+    """At most ``n`` of the ``ranked`` hypotheses: the best half by score, then the best one that matches each
+    item (items in search ``order``: fewest candidates first), then the rest by score.
+
+    The score counts matched pixels, not how telling the matches are: a new cabinet whose three faces fit
+    some cabinet of the model outscores the one tank that fits a single element, and with enough such
+    coincidences the right interpretation falls out of a list cut by score. Verification, not the score,
+    decides; it must be shown, for every item, the best interpretation that explains it.
+    """
+    chosen = ranked[: n // 2]
+    taken = {id(h) for h in chosen}
+    for i in order:
+        if len(chosen) >= n:
+            break
+        h = next((h for h in ranked if id(h) not in taken and any(k == i and e >= 0 for k, e in h.pairs)), None)
+        if h is not None:
+            chosen.append(h)
+            taken.add(id(h))
+    chosen += [h for h in ranked if id(h) not in taken][: n - len(chosen)]
+    return chosen
 
 
 def _same_pose(a: np.ndarray, b: np.ndarray, angle_rad: float, dist_m: float) -> bool:
@@ -922,8 +946,8 @@ def match(description: SceneDescription, model: SceneModel | ModelElements, pixe
         if any(_same_pose(T, u.pose.T_world_sensor, math.radians(2.0), 0.02 * length_m) for u in uniq):
             continue
         uniq.append(h)
-        if len(uniq) >= params.max_hypotheses:
-            break
+    uniq = sorted(_diverse(uniq, s.order, params.max_hypotheses),
+                  key=lambda h: (-h.score, h.pose.free_dof, h.pose.cost))
     return MatchResult(tuple(uniq), tuple(items), el, s.n_nodes, not s.stop_reason,
                        tuple(len(c) for c in cands), s.stop_reason)
 

@@ -168,3 +168,20 @@ def test_pathological_search_stops_within_its_time_budget():
     wall = time.perf_counter() - t0
     assert "time budget" in res.stop_reason and not res.exhausted
     assert wall < 3.0  # the budget plus model/item preparation and the final refinement
+
+
+def test_hypotheses_handed_on_include_the_best_explanation_of_every_item():
+    """A list cut by score alone loses the one interpretation that explains a telling item (DESIGN 6.3: the
+    score counts pixels, verification decides): the cut keeps, for each item, the best hypothesis matching it."""
+    from recognition.matching import Hypothesis, _diverse
+
+    def hyp(score, matched):
+        return Hypothesis(tuple((i, 0 if i in matched else -1) for i in range(4)), None, score, len(matched))
+
+    ranked = [hyp(10 - k, {1, 2}) for k in range(6)] + [hyp(3, {0, 3}), hyp(2, {0})]
+    kept = _diverse(ranked, order=[0, 1, 2, 3], n=4)
+    assert len(kept) == 4
+    assert kept[:2] == ranked[:2]  # the best half by score
+    assert ranked[6] in kept  # the best one explaining item 0 (and 3), far down the ranking
+    assert ranked[7] not in kept  # item 0 is already explained by a better one
+    assert _diverse(ranked, order=[0, 1, 2, 3], n=20) == ranked  # nothing to cut: the ranking is kept
