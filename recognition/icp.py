@@ -130,7 +130,7 @@ def _info(src_w: np.ndarray, tgt: np.ndarray, nrm: np.ndarray) -> tuple[np.ndarr
 
 
 def icp_refine(scan: Scan, prediction: Prediction, model: SceneModel, T_init: np.ndarray | None = None,
-               params: IcpParams = IcpParams()) -> IcpResult:
+               params: IcpParams = IcpParams(), source_mask: np.ndarray | None = None) -> IcpResult:
     """Refine ``T_world_sensor`` (default: the prediction's pose) against the predicted-visible model.
 
     Parameters
@@ -140,6 +140,7 @@ def icp_refine(scan: Scan, prediction: Prediction, model: SceneModel, T_init: np
     model : the a priori model (for the target normals).
     T_init : ndarray of shape (4, 4), the starting pose.
     params : :class:`IcpParams`.
+    source_mask : optional bool (H, W): the scan pixels that may be source points (default: all valid).
 
     Returns
     -------
@@ -165,7 +166,10 @@ def icp_refine(scan: Scan, prediction: Prediction, model: SceneModel, T_init: np
     # source: scan points on a stride
     s = params.source_stride
     src = scan.points[::s, ::s].reshape(-1, 3)
-    src = src[np.all(np.isfinite(src), axis=1)]
+    usable = np.all(np.isfinite(src), axis=1)
+    if source_mask is not None:
+        usable &= np.asarray(source_mask, dtype=bool)[::s, ::s].ravel()
+    src = src[usable]
     if len(src) > params.max_source_points:
         src = src[np.linspace(0, len(src) - 1, params.max_source_points).round().astype(np.intp)]
     if len(src) < 30:

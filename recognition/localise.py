@@ -11,7 +11,8 @@ priori model only (plus ``scan.pose_prior`` when the suite gives one, DESIGN 10.
 3. the best few are refined by a quick ICP (:mod:`recognition.icp`) and verified again: the agreement after
    ICP decides (this is what settles the 90/180 deg alternatives of symmetric walls and bays); another
    distinct pose agreeing within ``ambiguity_margin`` makes the result ambiguous (not ok). The winner gets
-   the full ICP against the model surfaces predicted visible from it;
+   the full ICP against the model surfaces predicted visible from it. ICP never uses the points of the
+   matchable patches its hypothesis leaves unmatched (:func:`_explained`): they are changes;
 4. the prediction at the final pose (full resolution), returned for change detection (DESIGN 10.11), and
    the final confidence (agreement at the final pose). OTH patches and the patches left to wildcards are
    then paired by overlap with the prediction (the paper's second, looser stage).
@@ -30,7 +31,7 @@ import numpy as np
 
 from recognition.describe import SceneDescription
 from recognition.icp import IcpParams, icp_refine
-from recognition.matching import MatchParams, given_match, match, model_elements
+from recognition.matching import MatchParams, given_match, match, model_elements, scene_items
 from recognition.verify import Prediction, VerifyParams, agreement, predict
 from scenes.model import SceneModel
 from sensors.range_image import Scan
@@ -174,6 +175,18 @@ def overlap_pairings(description: SceneDescription, prediction: Prediction, excl
     return out
 
 
+def _explained(description: SceneDescription, matchable: set[int], items, h) -> np.ndarray:
+    """Bool (H, W): the pixels ICP may use under hypothesis ``h`` - all but those of the ``matchable`` patches
+    (indices of patches with a primitive fit that the tree could match) that ``h`` leaves unmatched. Such a
+    patch contradicts the model where it is (a new cabinet, a sphere of another radius): it is a change, and
+    its points would pull the pose towards the nearest model surface."""
+    mask = np.ones(description.labels.shape, dtype=bool)
+    flat = mask.reshape(-1)
+    for k in matchable - {items[i].patch_index for i, e in h.pairs if e >= 0}:
+        flat[description.patches[k].pixels] = False
+    return mask
+
+
 def _close(A: np.ndarray, B: np.ndarray, description: SceneDescription, angle_deg: float = 2.0,
            rel: float = 0.02) -> bool:
     """Whether two poses are the same up to ``angle_deg`` and ``rel`` x the scene's median range."""
@@ -218,6 +231,7 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
         res = match(description, el, scan.sensor.pixel_pitch_rad, mp, prior)
     else:
         res = given_match(description, el, scan.sensor.pixel_pitch_rad, pairings, mp)
+    matchable = {it.patch_index for it in scene_items(description, scan.sensor.pixel_pitch_rad, mp)}
     timing["matching"] = time.perf_counter() - t0
     patch_ids = [description.patches[it.patch_index].id for it in res.items]
 
@@ -280,7 +294,8 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
         T_f, pred_f = T_i, pred_h
         if params.use_icp:
             t0 = time.perf_counter()
-            ir = icp_refine(scan, pred_h, model, T_i, params.icp_screen)
+            ir = icp_refine(scan, pred_h, model, T_i, params.icp_screen,
+                            _explained(description, matchable, res.items, h))
             timing["icp"] += time.perf_counter() - t0
             if ir.ok:
                 t0 = time.perf_counter()
@@ -303,7 +318,8 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
     icp_note = ""
     if params.use_icp:
         t0 = time.perf_counter()
-        ir = icp_refine(scan, pred_quick, model, T_quick, params.icp)
+        ir = icp_refine(scan, pred_quick, model, T_quick, params.icp,
+                        _explained(description, matchable, res.items, best))
         timing["icp"] += time.perf_counter() - t0
         if ir.ok:
             T_final, cov, free = ir.T_world_sensor, ir.cov_T_world_sensor, min(free, ir.free_dof)
