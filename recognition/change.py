@@ -307,8 +307,10 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
             if fid in decided:
                 continue
             f, prev = by_id[fid], results[fid]
+            unknown = set() if confirmed_only else \
+                {q for q, u in patch_unexplained.items() if u >= params.new_unexplained_fraction}
             verdict = _loose_verdict(f, prev, description, patch_prims, claimed, T, allowance, loose_d,
-                                     confirmed_only, params)
+                                     confirmed_only, params, unknown)
             if verdict is not None:
                 fragments = _fragments_of(verdict.patches[0], description, patch_prims, claimed, T, allowance, f)
                 results[fid] = replace(verdict, patches=verdict.patches + fragments)
@@ -435,15 +437,19 @@ def _overlapping_patches(labels_on_feature: np.ndarray, description: SceneDescri
 
 def _loose_verdict(f: Feature, prev: FeatureChange, description: SceneDescription, patch_prims: dict,
                    claimed: set[int], T: np.ndarray, allowance: np.ndarray, loose_d: float, confirmed_only: bool,
-                   params: ChangeParams) -> FeatureChange | None:
+                   params: ChangeParams, unknown: set[int] = frozenset()) -> FeatureChange | None:
     """The closest unclaimed scene patch that shows feature ``f`` altered (same place, other shape) or moved
     (same shape within the loose neighbourhood), as a verdict; None when there is none.
 
     With ``confirmed_only``, a moved verdict needs a patch whose fitted shape confirms the feature's (not
-    merely one that cannot contradict it, like a cylinder patch for a cone feature).
+    merely one that cannot contradict it, like a cylinder patch for a cone feature). The shape of a patch
+    smaller than ``params.altered_min_pixels`` away from the feature's place is not compared (its radius is
+    unreliable). ``unknown``
+    names OTH patches of unexplained points that may show any feature (a far cabinet's corner, two faces in
+    one patch, has no fit) within ``loose_d``, their shape unknown.
     """
     cand = [p for p in description.patches if p.id not in claimed and p.n_pixels >= params.min_pixels
-            and _compatible(p.label, f)]
+            and (_compatible(p.label, f) or (p.label == "OTH" and p.id in unknown))]
     # the neighbourhood covers a move of the feature's object: a translation plus a turn of up to the loose
     # angle about the object's centre, which moves the ends of a long feature further than its middle
     reach = loose_d + math.sin(math.radians(params.loose_angle_deg)) * f.size()
@@ -452,9 +458,13 @@ def _loose_verdict(f: Feature, prev: FeatureChange, description: SceneDescriptio
     for p in cand:
         prim = patch_prims.get(p.id) or {}
         dist = float(np.median(f.surface_distance(_patch_world(p, T))))
+        if not _compatible(p.label, f) and dist > loose_d:
+            continue
         allow = max(float(np.median(allowance.reshape(-1)[p.pixels])), 1e-3)
         place = _same_place(f, prim, allow)
         same = _same_shape(f, prim, params.radius_tolerance)
+        if not place and p.n_pixels < params.altered_min_pixels:
+            same = None  # a small patch elsewhere: its radius cannot tell another feature from this one moved
         if place and same is False:
             if dist < best:
                 best, verdict = dist, FeatureChange("altered", None, (p.id,), prev.found, prev.revealed,
