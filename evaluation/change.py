@@ -4,6 +4,8 @@ Which features count is decided here from the truth, never by the core: a featur
 scene (unchanged, moved, altered, new) is observable when the truth image shows >= 200 of its pixels; a
 missing feature when the a priori model, ray cast from the true pose, shows >= 200 of its pixels
 unoccluded by the actual scene; a moved feature when either its new or its old place qualifies.
+Only measured pixels count (the sensor returned a point: no dropout flag), as in the segmentation scores: a
+box top at grazing incidence that returned 250 of its 1200 pixels cannot be half labelled ``new``.
 Unobserved features are excluded from scoring.
 """
 
@@ -17,7 +19,7 @@ import numpy as np
 from recognition.change import LABELS, ChangeResult
 from recognition.verify import Prediction, pixels_by_feature
 from scenes.perturb import ChangeTruth
-from sensors.range_image import ScanTruth
+from sensors.range_image import FLAG_DROPOUT, ScanTruth
 
 MIN_PIXELS = 200
 
@@ -25,10 +27,11 @@ MIN_PIXELS = 200
 def observable_features(truth: ScanTruth, change_truth: ChangeTruth, apriori_at_truth: Prediction,
                         min_pixels: int = MIN_PIXELS) -> dict[str, str]:
     """Truth label of every observable feature (a priori features and new ones)."""
-    actual_pix = pixels_by_feature(truth.surface_id, tuple(s.feature_id for s in truth.surfaces))
+    actual_pix = _measured_pixels_by_feature(truth)
     # a priori pixels not occluded by the actual scene: the model surface is at or in front of what is there
     tol = 3 * np.nan_to_num(truth.sigma, nan=0.0) + 1e-3
-    unoccluded = np.isfinite(apriori_at_truth.range) & ~(truth.true_range < apriori_at_truth.range - tol)
+    unoccluded = np.isfinite(apriori_at_truth.range) & ~(truth.true_range < apriori_at_truth.range - tol) & \
+        _measured(truth)
     sid = np.where(unoccluded, apriori_at_truth.surface_id, -1)
     old_pix = pixels_by_feature(sid, tuple(s.feature_id for s in apriori_at_truth.surfaces))
     out = {}
@@ -49,13 +52,23 @@ def observable_features(truth: ScanTruth, change_truth: ChangeTruth, apriori_at_
     return out
 
 
+def _measured(truth: ScanTruth) -> np.ndarray:
+    """(H, W) bool: pixels where the sensor returned a point (no dropout flag)."""
+    return (truth.flags & FLAG_DROPOUT) == 0
+
+
+def _measured_pixels_by_feature(truth: ScanTruth) -> dict[str, np.ndarray]:
+    sid = np.where(_measured(truth), truth.surface_id, -1)
+    return pixels_by_feature(sid, tuple(s.feature_id for s in truth.surfaces))
+
+
 def change_section(result: ChangeResult, truth: ScanTruth, change_truth: ChangeTruth,
                    apriori_at_truth: Prediction, object_of: dict[str, str],
                    min_pixels: int = MIN_PIXELS) -> dict[str, Any]:
     """Per-trial change record: (truth, predicted) pairs for observable features and objects, false ``new``
     patches, and the displacement error of correctly labelled moved features."""
     observable = observable_features(truth, change_truth, apriori_at_truth, min_pixels)
-    actual_pix = pixels_by_feature(truth.surface_id, tuple(s.feature_id for s in truth.surfaces))
+    actual_pix = _measured_pixels_by_feature(truth)
     label_map = result.label_map.reshape(-1)
     new_idx = LABELS.index("new")
     features = []

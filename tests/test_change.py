@@ -102,6 +102,25 @@ def test_evaluation_scores_the_detection(seen):
     assert agg["objects"]["macro_f1"] == pytest.approx(1.0)
 
 
+def test_a_feature_the_sensor_did_not_measure_is_not_observable(seen):
+    """Only measured pixels count: the same truth with the moved pipe's pixels flagged as dropouts (grazing)
+    leaves it out of the scoring, however many pixels the truth image gives it."""
+    import dataclasses
+
+    from sensors.range_image import FLAG_GRAZING
+
+    apriori, actual, change_truth, scan, truth, desc, predictor, result = seen
+    at_truth = predictor.predict(scan.sensor, truth.T_world_sensor)
+    on_pipe = np.isin(truth.surface_id, [i for i, s in enumerate(truth.surfaces) if s.feature_id == "pipe_a.s0"])
+    assert "pipe_a.s0" in observable_features(truth, change_truth, at_truth)
+    # its old place is revealed background: drop that too, or the move stays observable there
+    old_place = at_truth.surface_id == next(i for i, s in enumerate(at_truth.surfaces) if s.feature_id == "pipe_a.s0")
+    flags = truth.flags | np.where(on_pipe | old_place, FLAG_GRAZING, 0).astype(np.uint8)
+    unmeasured = dataclasses.replace(truth, flags=flags)
+    assert "pipe_a.s0" not in observable_features(unmeasured, change_truth, at_truth)
+    assert observable_features(unmeasured, change_truth, at_truth)["tank.ball"] == "missing"
+
+
 def test_truth_fed_as_the_estimate_scores_perfectly(seen):
     apriori, actual, change_truth, scan, truth, desc, predictor, result = seen
     at_truth = predictor.predict(scan.sensor, truth.T_world_sensor)
