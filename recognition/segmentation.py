@@ -54,6 +54,8 @@ What the simulated suites (mixed pixels, outliers, grazing dropouts, incidence-d
    into tiles that merging reassembles; so are unseeded leftover pieces (a thin pipe run). The quick fits
    behind these tests are Taubin fits: the plain algebraic quadric fit is biased on small arcs.
    Two patches that each fit a plane merge only as one plane, never as the plane pair a quadric fits.
+   After the full-resolution refinement, a patch that no plane fits but a plane pair does (two faces of a
+   far, small box reassembled from noisy tiles) is cut along its crease (:func:`_split_plane_pairs`).
 9. **Hoover-literal hygiene**: fragments under ``min_region_pixels`` join a bordering patch whose surface
    fits them; pixels with at most two 4-neighbours in their own patch are left unlabelled (mixed pixels
    and one-pixel slivers of other surfaces at corners: the metric counts a patch that wholly covers a
@@ -1092,6 +1094,62 @@ def _is_plane_pair(p: np.ndarray, x: np.ndarray, tol: float) -> bool:
     return abs(c_cano) <= tol * l1 * R * R
 
 
+def _plane_pair_sides(p: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Side (0 or 1) of each point ``x`` (N, 3): the nearer of the two planes of the plane-pair quadric ``p``.
+
+    With ``A = l1 v1 v1' + l2 v2 v2'`` (``l1 > 0 > l2``) and centre ``t`` (``2 A t = -b``, in the range of
+    ``A``), the quadric is ``(m+ . (y - t)) (m- . (y - t))`` with ``m± = sqrt(l1) v1 ± sqrt(-l2) v2``.
+    """
+    A = np.array([[p[0], p[3], p[4]], [p[3], p[1], p[5]], [p[4], p[5], p[2]]])
+    lam, V = np.linalg.eigh(A)
+    order = np.argsort(-np.abs(lam))
+    lam, V = lam[order], V[:, order]
+    if lam[0] < 0:
+        lam = -lam
+    t = np.linalg.pinv(A, rcond=1e-6) @ (-0.5 * p[6:9])
+    m1 = np.sqrt(lam[0]) * V[:, 0] + np.sqrt(-lam[1]) * V[:, 1]
+    m2 = np.sqrt(lam[0]) * V[:, 0] - np.sqrt(-lam[1]) * V[:, 1]
+    y = x - t
+    d1 = np.abs(y @ m1) / np.linalg.norm(m1)
+    d2 = np.abs(y @ m2) / np.linalg.norm(m2)
+    return (d2 < d1).astype(np.int8)
+
+
+def _split_plane_pairs(labels: np.ndarray, st: _State, params: SegmentationParams) -> np.ndarray:
+    """Cut each patch that no plane fits (RMS beyond ``merge_k``) but a plane pair does (two faces of a far,
+    small box whose crease the curvature could not see, reassembled from noisy tiles) along its crease,
+    when each side then fits its own plane."""
+    groups = {k: v for k, v in _groups(labels).items() if v.size >= 2 * params.min_patch_pixels}
+    if not groups:
+        return labels
+    labs = list(groups)
+    subs = [_subsample(groups[k], params.max_fit_points) for k in labs]
+    _, zp = _quick_fits(subs, np.ones(len(labs), bool), st)
+    bad = [j for j in range(len(labs)) if not _rms(zp[j]) <= params.merge_k]
+    if not bad:
+        return labels
+    Pq, _ = _quick_fits([subs[j] for j in bad], np.zeros(len(bad), bool), st)
+    out = labels
+    nxt = int(labels.max()) + 1
+    for q, j in zip(Pq, bad, strict=True):
+        idx = groups[labs[j]]
+        if not _is_plane_pair(q, st.X[subs[j]], _PLANE_PAIR_TOL):
+            continue
+        side = _plane_pair_sides(q, st.X[idx])
+        halves = [idx[side == 0], idx[side == 1]]
+        if min(h.size for h in halves) < params.min_patch_pixels:
+            continue
+        hs = [_subsample(h, params.max_fit_points) for h in halves]
+        _, zh = _quick_fits(hs, np.ones(2, bool), st)
+        if not all(_rms(z) <= params.merge_k for z in zh):
+            continue
+        if out is labels:
+            out = labels.copy()
+        out.reshape(-1)[halves[1]] = nxt
+        nxt += 1
+    return out
+
+
 def _neighbour_links(shape, valid, jump_h, jump_v):
     """For each direction (left, right, up, down): (row shift, col shift, link allowed (H, W) bool)."""
     H, W = shape
@@ -1563,6 +1621,9 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
         crease = up(crease_d)
         st_full.hk = hk.ravel().astype(np.int64)
         labels = _refine_full(up(labels_d), valid, st_full, jump_h, jump_v, params, d)
+        split = _split_plane_pairs(labels, st_full, params)
+        if split is not labels:  # a split-off side too small to stand alone goes to the face it belongs to
+            labels = _absorb_fragments(split, st_full, jump_h, jump_v, params.min_region_pixels, params.absorb_k)
     edges = _edge_image(shape, jump_h, jump_v)
     edges[crease] |= np.uint8(EdgeType.CREASE)
     labels = _peel_weak(labels, params.min_region_pixels, jump_h, jump_v)

@@ -528,3 +528,36 @@ def test_two_flat_looking_halves_of_a_gentle_cylinder_merge_as_a_quadric(curved_
     merged = _merge(labels, st, no_jump_h, no_jump_v)
     n_labels = len(np.unique(merged[valid]))
     assert n_labels == (1 if curved_planar_merge else 2)
+
+
+@pytest.mark.parametrize("roof", [True, False])
+def test_a_patch_spanning_two_faces_is_split_along_its_crease(roof):
+    """One label over both faces of a roof (a far box's corner reassembled from noisy tiles) is cut in two
+    along the crease, each side on its own face; one over a cylinder, which no plane pair fits, is kept."""
+    from recognition.segmentation import _split_plane_pairs, _State
+
+    sigma = 1e-3
+    if roof:
+        n1, n2 = np.array([1.0, 0, -1.0]), np.array([-1.0, 0, -1.0])
+        surfaces = [S.Surface(lambda d: _halfplane(d, n1, x_sign=-1), 1),
+                    S.Surface(lambda d: _halfplane(d, n2, x_sign=1), 2)]
+    else:
+        surfaces = [S.cylinder([0, 0, 2.0], [0, 1.0, 0], 0.4, 3.0, 1)]
+    pts, _, ids = S.render(surfaces, CAM, sigma, np.random.default_rng(3))
+    valid = ids > 0
+    labels = np.where(valid, 0, -1).astype(np.int32)
+    X = pts.reshape(-1, 3)
+    U = X / np.linalg.norm(X, axis=1, keepdims=True)
+    st = _State(X=X, U=U, S=np.where(valid.ravel(), sigma, np.nan), hk=np.ones(X.shape[0], np.int64),
+                params=SegmentationParams())
+    out = _split_plane_pairs(labels, st, st.params)
+    if not roof:
+        assert out is labels
+        return
+    assert len(np.unique(out[valid])) == 2
+    dominant = []
+    for face in (1, 2):
+        got, n = np.unique(out[ids == face], return_counts=True)
+        assert n.max() >= 0.99 * n.sum(), (face, got, n)
+        dominant.append(got[np.argmax(n)])
+    assert dominant[0] != dominant[1]
