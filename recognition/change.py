@@ -326,7 +326,8 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
 
     candidates = [p for p in description.patches if p.id not in claimed
                   and patch_unexplained[p.id] >= params.new_unexplained_fraction]
-    new_pixels = _new_regions(candidates, scan.range.shape, params.new_min_pixels)
+    unexplained_free = np.isin(pix_cls, (PIXEL_FRONT, PIXEL_BEHIND)) & (description.labels < 0)
+    new_pixels = _new_regions(candidates, scan.range.shape, params.new_min_pixels, grow_into=unexplained_free)
     new = tuple(new_pixels)
     objects = {o.id: object_label([results[f.id] for f in o.features]) for o in model.objects}
     label_map = np.full(scan.range.shape, -1, dtype=np.int8)
@@ -380,10 +381,14 @@ def _fragments_of(pid: int, description: SceneDescription, prims: dict, claimed:
     return tuple(out)
 
 
-def _new_regions(patches, shape: tuple[int, int], min_pixels: int, gap_px: int = 2) -> dict[int, np.ndarray]:
+def _new_regions(patches, shape: tuple[int, int], min_pixels: int, gap_px: int = 2,
+                 grow_into: np.ndarray | None = None) -> dict[int, np.ndarray]:
     """Unexplained patches grouped into new regions: patches within ``gap_px`` of each other in the image
     form one region (a new object split by the segmenter is one detection, not several). Keyed by the id
-    of each region's largest patch; regions smaller than ``min_pixels`` are dropped."""
+    of each region's largest patch; regions smaller than ``min_pixels`` are dropped. With ``grow_into``
+    (bool (H, W)), each region also takes the pixels of that mask connected to it: the unexplained points
+    the segmenter left out of every patch (a new box's face at grazing incidence) are the new object's too.
+    """
     if not patches:
         return {}
     mask = np.zeros(shape, dtype=bool)
@@ -391,6 +396,10 @@ def _new_regions(patches, shape: tuple[int, int], min_pixels: int, gap_px: int =
         mask.flat[p.pixels] = True
     grown = ndimage.binary_dilation(mask, iterations=gap_px)
     components, _ = ndimage.label(grown)
+    extended = None
+    if grow_into is not None:
+        reach = ndimage.binary_propagation(mask, mask=mask | grow_into)
+        extended, _ = ndimage.label(grown | reach)
     regions: dict[int, list] = {}
     for p in sorted(patches, key=lambda q: -q.n_pixels):
         comp = int(components.flat[p.pixels[0]])
@@ -399,6 +408,10 @@ def _new_regions(patches, shape: tuple[int, int], min_pixels: int, gap_px: int =
     for members in regions.values():
         pix = np.concatenate([m.pixels for m in members])
         if len(pix) >= min_pixels:
+            if extended is not None:
+                ext = extended.flat[pix[0]]
+                extra = np.flatnonzero((extended.ravel() == ext) & grow_into.ravel())
+                pix = np.union1d(pix, extra)
             out[members[0].id] = np.sort(pix)
     return out
 

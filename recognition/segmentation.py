@@ -905,6 +905,7 @@ def _is_planar_counts(counts: np.ndarray) -> bool:
 
 _UPPER10 = np.triu_indices(10)
 _UPPER4 = np.triu_indices(4)
+_UPPER3 = np.triu_indices(3)
 
 
 def _group_sums(values: np.ndarray, starts: np.ndarray) -> np.ndarray:
@@ -924,7 +925,7 @@ def _plane_fits(X, U, S, gid, starts, cnt):
     mean = _group_sums(X, starts) / cnt[:, None]
     d = X - mean[gid]
     C = _group_sums(d[:, [0, 0, 0, 1, 1, 2]] * d[:, [0, 1, 2, 1, 2, 2]], starts)
-    _, V = np.linalg.eigh(_symmetric(C, 3, np.triu_indices(3)))
+    _, V = np.linalg.eigh(_symmetric(C, 3, _UPPER3))
     n = V[:, :, 0]
     f = np.einsum("ij,ij->i", d, n[gid])
     gr = np.maximum(np.abs(np.einsum("ij,ij->i", U, n[gid])), _MIN_GRAZING)
@@ -1355,7 +1356,8 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
             push([(a, b)])
             continue
         members[a] = np.concatenate([members[a], members.pop(b)])
-        subs[a] = _subsample(np.sort(members[a]), nmax)
+        members[a].sort(kind="stable")  # two sorted runs: a linear merge
+        subs[a] = _subsample(members[a], nmax)
         subs.pop(b)
         counts[a] = counts[a] + counts.pop(b)
         flats.pop(b)

@@ -210,3 +210,25 @@ def test_an_object_with_an_altered_feature_is_altered_as_a_whole_not_moved():
     assert [results[f].label for f in ("run.s0", "run.e0", "run.s1")] == ["altered"] * 3
     assert [results[f].label for f in ("other.s0", "other.s1", "other.s2")] == ["moved"] * 3
     assert object_label([results[f] for f in ("run.s0", "run.e0", "run.s1")]) == "altered"
+
+
+def test_a_new_region_takes_the_unexplained_pixels_left_out_of_every_patch():
+    """A new box's face at grazing incidence left unsegmented next to its segmented face: the region
+    reported new includes the unexplained pixels connected to it, and no others."""
+    from types import SimpleNamespace
+
+    from recognition.change import _new_regions
+
+    shape = (10, 12)
+    face = np.ravel_multi_index(np.nonzero(np.pad(np.ones((4, 4), bool), ((1, 5), (1, 7)))), shape)
+    patch = SimpleNamespace(id=7, pixels=face, n_pixels=face.size)
+    unexplained = np.zeros(shape, bool)
+    unexplained[1:5, 5:8] = True  # the grazing face, touching the patch
+    unexplained[8:, 10:] = True  # unexplained noise elsewhere, not connected
+    plain = _new_regions([patch], shape, 5)
+    grown = _new_regions([patch], shape, 5, grow_into=unexplained)
+    assert set(plain) == set(grown) == {7}
+    assert np.array_equal(plain[7], np.sort(face))
+    grazing = np.zeros(shape, bool)
+    grazing[1:5, 5:8] = True
+    assert np.array_equal(grown[7], np.union1d(face, np.flatnonzero(grazing)))
