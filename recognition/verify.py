@@ -7,6 +7,9 @@ full sensor's rays at those pixels). :func:`agreement` scores how well the data 
 patch, the fraction of its pixels whose measured range lies within ``k_sigma * sigma + abs_m +
 rel * range`` of the predicted range, averaged over patches with weights ``log(pixels)`` (DESIGN 6.3), so
 a wall does not outvote every pipe and a few changed parts (moved, missing, new) only lower the score.
+Pixels seen *behind* the prediction, up to ``seen_through`` of a patch, are left out of its fraction: a
+missing pipe is predicted in front of the wall the data shows (the right pose of a mock-up whose pipe was
+removed lost to its 180 deg turn, which predicts nothing there).
 
 The prediction (range and surface ids) is returned so it can be shared by ICP and change detection
 (DESIGN 10.11).
@@ -37,6 +40,10 @@ class VerifyParams:
     abs_m : ... plus this absolute allowance (metres) ...
     rel : ... plus this fraction of the range (pose error of a closed-form hypothesis grows with range).
     min_pixels : patches smaller than this are not scored.
+    seen_through : up to this fraction of a patch's pixels may lie behind the prediction without counting
+        against it: a model object that is missing from the scene is predicted in front of the surface the
+        data shows behind it (the pixels neither agree nor disagree). A pose that predicts a wall in front of
+        everything still disagrees on the rest. 0: every pixel counts.
     """
 
     stride: int = 4
@@ -44,12 +51,15 @@ class VerifyParams:
     abs_m: float = 0.003
     rel: float = 0.004
     min_pixels: int = 30
+    seen_through: float = 0.5
 
     def __post_init__(self):
         if self.stride < 1 or self.min_pixels < 1:
             raise ValueError("stride and min_pixels must be >= 1")
         if self.k_sigma < 0 or self.abs_m < 0 or self.rel < 0:
             raise ValueError("k_sigma, abs_m and rel must be >= 0")
+        if not 0 <= self.seen_through < 1:
+            raise ValueError(f"seen_through must be in [0, 1), got {self.seen_through}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -152,13 +162,17 @@ def agreement(description: SceneDescription, scan: Scan, prediction: Prediction,
     thr = params.k_sigma * np.nan_to_num(sig, nan=0.0) + params.abs_m + params.rel * np.nan_to_num(meas, nan=0.0)
     with np.errstate(invalid="ignore"):
         good = np.abs(meas - pred) <= thr
+        behind = meas - pred > thr
     lab = labels.ravel()
     sel = lab >= 0
     if not sel.any():
         return 0.0, {}
     n_lab = int(lab.max()) + 1
-    total = np.bincount(lab[sel], minlength=n_lab)
+    total = np.bincount(lab[sel], minlength=n_lab).astype(np.float64)
     agree = np.bincount(lab[sel], weights=good.ravel()[sel].astype(np.float64), minlength=n_lab)
+    if params.seen_through > 0:
+        n_behind = np.bincount(lab[sel], weights=behind.ravel()[sel].astype(np.float64), minlength=n_lab)
+        total = total - np.minimum(n_behind, params.seen_through * total)
     num = den = 0.0
     fractions: dict[int, float] = {}
     for p in description.patches:

@@ -111,3 +111,30 @@ def test_a_patch_the_interpretation_leaves_unmatched_does_not_pull_icp():
     res = localise(describe(scan), scan, p.apriori, model_simulator=Simulator.from_scene(p.apriori))
     sec = pose_section(res, truth.T_world_sensor, float(np.nanmedian(truth.true_range)), True, None)
     assert sec["translation_error_mm"] < 1.0 and sec["rotation_error_deg"] < 0.05, sec
+
+
+def test_agreement_lets_a_missing_object_be_seen_through_but_not_a_whole_wall():
+    """Pixels behind the prediction (a model pipe that is missing, the wall behind it seen) neither agree
+    nor disagree, up to ``seen_through`` of a patch; a pose that predicts a wall in front of everything
+    still disagrees on the rest."""
+    from types import SimpleNamespace
+
+    from recognition.verify import VerifyParams, agreement
+
+    shape = (20, 20)
+    labels = np.zeros(shape, np.int32)
+    desc = SimpleNamespace(labels=labels, sigma=np.full(shape, 1e-3),
+                           patches=(SimpleNamespace(id=0, n_pixels=400),))
+    scan = SimpleNamespace(range=np.full(shape, 2.0))
+    pred_range = np.full(shape, 2.0)
+    pred_range[:, :6] = 1.5  # a pipe predicted in front of 30 % of the wall, missing from the scene
+    pred = SimpleNamespace(stride=1, offset=0, range=pred_range)
+    score, _ = agreement(desc, scan, pred, VerifyParams(stride=1))
+    assert score == pytest.approx(1.0)
+    score, _ = agreement(desc, scan, pred, VerifyParams(stride=1, seen_through=0.0))
+    assert score == pytest.approx(0.7)
+    wall = SimpleNamespace(stride=1, offset=0, range=np.full(shape, 1.0))  # everything predicted in front
+    score, _ = agreement(desc, scan, wall, VerifyParams(stride=1))
+    assert score == pytest.approx(0.0)
+    with pytest.raises(ValueError, match="seen_through"):
+        VerifyParams(seen_through=1.0)
