@@ -570,7 +570,8 @@ def _within_angle(f: Feature, prim: dict, max_deg: float) -> bool:
 
 def _propagate_rigid_moves(model: SceneModel, results: dict[str, FeatureChange], revealed_share: float = 0.1) -> None:
     """Objects move as a whole: in an object with a moved feature, a feature left 'unchanged' whose predicted
-    place is partly revealed (background seen where it should be) moved with it.
+    place is partly revealed (background seen where it should be) moved with it, and so did a 'missing' one
+    when none of its features stayed (the counting of :func:`object_label` calls that object moved).
 
     An object with a feature whose fitted shape differs (``altered``: a pipe run of another radius) is
     altered as a whole instead: its features found displaced (an elbow or reducer, whose shape is not
@@ -589,9 +590,12 @@ def _propagate_rigid_moves(model: SceneModel, results: dict[str, FeatureChange],
         if not moved or obj.kind == "pipe_run" and len(moved) < 2:
             continue  # one moved section of a pipe run is a section move, not an object move
         disp = float(np.median([m.displacement_m for m in moved if m.displacement_m is not None] or [np.nan]))
+        whole = all(results[f.id].label in ("moved", "missing", "unobserved") for f in obj.features)
         for f in obj.features:
             r = results[f.id]
-            if r.label == "unchanged" and r.revealed >= revealed_share * max(r.found + r.revealed, 1):
+            if r.label == "unchanged" and r.revealed >= revealed_share * max(r.found + r.revealed, 1) or \
+                    r.label == "missing" and whole:
+                # (a feature gone from its place in an object that moved as a whole moved with it, unseen)
                 results[f.id] = FeatureChange("moved", disp, r.patches, r.found, r.revealed, r.occluded,
                                               "moves with its object")
 

@@ -232,3 +232,27 @@ def test_a_new_region_takes_the_unexplained_pixels_left_out_of_every_patch():
     grazing = np.zeros(shape, bool)
     grazing[1:5, 5:8] = True
     assert np.array_equal(grown[7], np.union1d(face, np.flatnonzero(grazing)))
+
+
+@pytest.mark.parametrize("sibling", ["moved", "unchanged"])
+def test_a_feature_gone_from_an_object_that_moved_as_a_whole_moved_with_it(sibling):
+    """Counting (the paper's semantic layer): a pipe run whose sections moved, one of them not found at the
+    new place but revealed at the old one, moved as a whole - unless a section stayed (a section move)."""
+    from recognition.change import _propagate_rigid_moves
+    from scenes.features import Cylinder
+    from scenes.model import Object, SceneModel
+
+    feats = tuple(Cylinder(f"run.s{k}", centre=np.array([k * 1.0, 0, 1]), axis=np.array([1.0, 0, 0]), radius=0.05,
+                           length=1.0) for k in range(4))
+    model = SceneModel("m", (Object("run", "pipe_run", feats),))
+    results = {"run.s0": FeatureChange("moved", 0.2, (1,), 0, 300, 0),
+               "run.s1": FeatureChange("moved", 0.3, (2,), 0, 300, 0),
+               "run.s2": FeatureChange("missing", None, (), 0, 250, 0),
+               "run.s3": FeatureChange(sibling, 0.25 if sibling == "moved" else None, (3,), 300, 0, 0)}
+    _propagate_rigid_moves(model, results)
+    if sibling == "moved":
+        assert results["run.s2"].label == "moved"
+        assert results["run.s2"].displacement_m == pytest.approx(0.25)
+        assert object_label(list(results.values())) == "moved"
+    else:
+        assert results["run.s2"].label == "missing"
