@@ -81,7 +81,25 @@ def aggregate_classification(trials: list[dict[str, Any]], min_pixels: int = MIN
         "reliability": table,
         "ece": expected_calibration_error(table),
         "n_patches_all": int(sum(len(t["patches"]) for t in trials)),
+        "radius": {c: radius_errors(patches, c) for c in ("CYL", "SPH")},
     }
+
+
+def radius_errors(patches: list[dict[str, Any]], label: str) -> dict[str, Any] | None:
+    """Radius of the patches labelled ``label`` whose truth has that class too (issue #14): the median
+    absolute and signed (bias) relative errors of the fitted radius, and the fraction within 2 of its
+    predicted sigmas of the truth. None without such patches."""
+    rows = [p["radius"] for p in patches if p["label"] == label and p["truth"] == label and p.get("radius")]
+    if not rows:
+        return None
+    est = np.array([r["estimate_m"] for r in rows])
+    true = np.array([r["truth_m"] for r in rows])
+    sig = np.array([r["sigma_m"] for r in rows])
+    rel = est / true - 1.0
+    with np.errstate(invalid="ignore"):
+        within = np.abs(est - true) <= 2.0 * sig
+    return {"n": len(rows), "median_abs_rel_error": float(np.median(np.abs(rel))),
+            "median_rel_error": float(np.median(rel)), "within_2_sigma": float(np.mean(within))}
 
 
 def aggregate_pose(trials: list[dict[str, Any]]) -> dict[str, Any]:

@@ -320,6 +320,13 @@ def classification_section(run: RunData, table_trial: str | None) -> Section:
                       Cell(fmt(_get(sec, "per_class", c, "recall")), "num")]
         crow.append(tuple(cells))
     blocks.append(Table(tuple(head), tuple(crow), caption="Per class (support: truth patches of that class)"))
+    rrows = [(Cell(m), Cell(c), Cell(str(r["n"]), "num"), Cell(fmt(100 * r["median_abs_rel_error"]), "num"),
+              Cell(fmt(100 * r["median_rel_error"]), "num"), Cell(fmt(r["within_2_sigma"]), "num"))
+             for m, sec in present.items() for c, r in (sec.get("radius") or {}).items() if r]
+    if rrows:
+        blocks.append(Table(("method", "class", "patches", "median |error| (%)", "bias (median error, %)",
+                             "within 2 sigma"), tuple(rrows),
+                            caption="Fitted radius against the truth, on the patches labelled with their true class"))
     per_class = {m: sec["per_class"] for m, sec in present.items() if sec.get("per_class")}
     if per_class:
         blocks.append(Image(figures.per_class_figure(per_class), "Recall (bars, class colours) and precision "
