@@ -182,6 +182,12 @@ class SelectParams:
         (``2 ln N`` for two more parameters, plus the planar hint's log odds): at this scale they are such
         height fields, so they cannot win (large planar patches were 70 % of a frame's time). 0: always fit
         them.
+    invariant_sigma_scale : float
+        Multiplies the sigmas of the reported invariants (radius, half-angle, length; the fits' own
+        covariances are left alone). The fits' sandwich covariances miss errors shared by neighbouring points
+        (beam footprint, incidence-dependent range bias): on the ``calibration`` suite (seed 4242, never
+        ``default``; DESIGN 10.8) the radius errors of the 77 patches labelled CYL or SPH on a true cylinder or
+        sphere had a median of 0.95 predicted sigmas where a Gaussian has 0.674: scale 1.415, rounded to 1.4.
     """
 
     criterion: str = "bic"
@@ -202,6 +208,7 @@ class SelectParams:
     outlier_k: float = 8.0
     min_inliers: float = 1.0
     plane_gate: float = 0.5
+    invariant_sigma_scale: float = 1.4
 
 
 @dataclass(frozen=True)
@@ -309,15 +316,17 @@ def _length_sigma(pts: np.ndarray, axis: np.ndarray, length: float) -> float:
     return float(np.sqrt(max(length * width, 0.0) / len(pts)))
 
 
-def _invariants(fit: Primitive | None, pts: np.ndarray) -> dict[str, tuple[float, float]]:
+def _invariants(fit: Primitive | None, pts: np.ndarray, sigma_scale: float = 1.0) -> dict[str, tuple[float, float]]:
+    """The fit's invariants as ``{name: (value, sigma)}``, the sigmas times ``sigma_scale``."""
+    k = sigma_scale
     if isinstance(fit, prim.CylinderFit) and fit.ok:
-        return {"radius_m": (fit.radius, fit.radius_sigma),
-                "length_m": (fit.length, _length_sigma(pts, fit.axis, fit.length))}
+        return {"radius_m": (fit.radius, k * fit.radius_sigma),
+                "length_m": (fit.length, k * _length_sigma(pts, fit.axis, fit.length))}
     if isinstance(fit, prim.SphereFit) and fit.ok:
-        return {"radius_m": (fit.radius, fit.radius_sigma)}
+        return {"radius_m": (fit.radius, k * fit.radius_sigma)}
     if isinstance(fit, prim.ConeFit) and fit.ok:
-        return {"half_angle_rad": (fit.half_angle, fit.half_angle_sigma),
-                "length_m": (fit.length, _length_sigma(pts, fit.axis, fit.length))}
+        return {"half_angle_rad": (fit.half_angle, k * fit.half_angle_sigma),
+                "length_m": (fit.length, k * _length_sigma(pts, fit.axis, fit.length))}
     return {}
 
 
@@ -781,7 +790,7 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
         refit = prim.refit_along_rays(fit, pts, sig, rays, huber=params.huber, max_points=params.refit_points)
         details["geometric_fit"] = fit
         fit = refit
-    return _result(label, probs, plaus, fit, _invariants(fit, pts), "", details)
+    return _result(label, probs, plaus, fit, _invariants(fit, pts, params.invariant_sigma_scale), "", details)
 
 
 # ---------------------------------------------------------------------------------------------------------

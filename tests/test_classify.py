@@ -53,6 +53,19 @@ def test_select_invariants_match_truth():
     assert r.label == "SPH" and set(r.invariants) == {"radius_m"}
 
 
+def test_reported_invariant_sigmas_carry_the_calibrated_scale():
+    """``invariant_sigma_scale`` multiplies the reported invariants' sigmas, never the fit's covariance."""
+    from dataclasses import replace
+
+    p = sample_patch("cylinder", np.random.default_rng(2), "factory_scanner")
+    plain = classify_patch(p.points, p.sigma, params=replace(SelectParams(), invariant_sigma_scale=1.0))
+    scaled = classify_patch(p.points, p.sigma, params=replace(SelectParams(), invariant_sigma_scale=1.4))
+    assert plain.label == scaled.label == "CYL"
+    assert scaled.invariants["radius_m"][0] == plain.invariants["radius_m"][0]
+    assert scaled.invariants["radius_m"][1] == pytest.approx(1.4 * plain.invariants["radius_m"][1])
+    assert scaled.invariants["radius_m"][1] == pytest.approx(1.4 * scaled.primitive.radius_sigma)
+
+
 @pytest.mark.parametrize("method", ["select", "paper"])
 def test_planar_hint_gives_plan(method):
     p = sample_patch("plane", np.random.default_rng(2), "factory_scanner")
