@@ -264,6 +264,9 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
     patch_prims = {p.id: _primitive_world(p, T) for p in description.patches}
     patch_unexplained = {p.id: float(np.mean(np.isin(flat_cls[p.pixels], (PIXEL_FRONT, PIXEL_BEHIND))))
                          for p in description.patches}
+    # patches made mostly of unexplained points: new, or (OTH ones) a feature seen elsewhere with no fit
+    unexplained = {q for q, u in patch_unexplained.items() if u >= params.new_unexplained_fraction}
+    sizes = {p.id: p.n_pixels for p in description.patches}
     label_flat = description.labels.reshape(-1)
     claimed: set[int] = set()
     results: dict[str, FeatureChange] = {}
@@ -275,7 +278,7 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
         occluded = int(np.sum(c == PIXEL_FRONT))
         judged = found + revealed
         f = by_id[fid]
-        overlapping = _overlapping_patches(label_flat[pix[c == PIXEL_EXPLAINED]], description)
+        overlapping = _overlapping_patches(label_flat[pix[c == PIXEL_EXPLAINED]], sizes)
         if judged >= params.min_pixels and found >= params.present_fraction * judged:
             allow = float(np.median(allowance.reshape(-1)[pix]))
             tight = [_tight(f, patch_prims[pid], allow) for pid in overlapping if patch_prims.get(pid) is not None]
@@ -285,7 +288,6 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
                 results[fid] = FeatureChange("unobserved", None, (), found, revealed, occluded)
                 pending.append(fid)
                 continue
-            sizes = {p.id: p.n_pixels for p in description.patches}
             altered = _altered_by_patches(f, [q for q in overlapping if sizes[q] >= params.altered_min_pixels],
                                           patch_prims, sizes, params)
             claimed.update(overlapping)
@@ -307,10 +309,8 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
             if fid in decided:
                 continue
             f, prev = by_id[fid], results[fid]
-            unknown = set() if confirmed_only else \
-                {q for q, u in patch_unexplained.items() if u >= params.new_unexplained_fraction}
             verdict = _loose_verdict(f, prev, description, patch_prims, claimed, T, allowance, loose_d,
-                                     confirmed_only, params, unknown)
+                                     confirmed_only, params, frozenset() if confirmed_only else unexplained)
             if verdict is not None:
                 fragments = _fragments_of(verdict.patches[0], description, patch_prims, claimed, T, allowance, f)
                 results[fid] = replace(verdict, patches=verdict.patches + fragments)
@@ -324,8 +324,7 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
         results.setdefault(f.id, FeatureChange("unobserved", reason="not predicted visible"))
     _propagate_rigid_moves(model, results)
 
-    candidates = [p for p in description.patches if p.id not in claimed
-                  and patch_unexplained[p.id] >= params.new_unexplained_fraction]
+    candidates = [p for p in description.patches if p.id not in claimed and p.id in unexplained]
     unexplained_free = np.isin(pix_cls, (PIXEL_FRONT, PIXEL_BEHIND)) & (description.labels < 0)
     new_pixels = _new_regions(candidates, scan.range.shape, params.new_min_pixels, grow_into=unexplained_free)
     new = tuple(new_pixels)
@@ -440,11 +439,11 @@ def _model_diagonal(model: SceneModel) -> float:
     return float(np.linalg.norm(hi - lo))
 
 
-def _overlapping_patches(labels_on_feature: np.ndarray, description: SceneDescription,
-                         min_share: float = 0.3) -> list[int]:
-    """Patches with at least ``min_share`` of their pixels among the given pixels (a feature's explained ones)."""
+def _overlapping_patches(labels_on_feature: np.ndarray, sizes: dict[int, int], min_share: float = 0.3
+                         ) -> list[int]:
+    """Patches with at least ``min_share`` of their pixels (``sizes``: pixels per patch id) among the given
+    pixels (a feature's explained ones)."""
     ids, counts = np.unique(labels_on_feature[labels_on_feature >= 0], return_counts=True)
-    sizes = {p.id: p.n_pixels for p in description.patches}
     return [int(i) for i, c in zip(ids, counts, strict=True) if c >= min_share * sizes.get(int(i), 1)]
 
 
@@ -457,9 +456,8 @@ def _loose_verdict(f: Feature, prev: FeatureChange, description: SceneDescriptio
     With ``confirmed_only``, a moved verdict needs a patch whose fitted shape confirms the feature's (not
     merely one that cannot contradict it, like a cylinder patch for a cone feature). The shape of a patch
     smaller than ``params.altered_min_pixels`` away from the feature's place is not compared (its radius is
-    unreliable). ``unknown``
-    names OTH patches of unexplained points that may show any feature (a far cabinet's corner, two faces in
-    one patch, has no fit) within ``loose_d``, their shape unknown.
+    unreliable). ``unknown`` names OTH patches of unexplained points that may show any feature (a far
+    cabinet's corner, two faces in one patch, has no fit) within ``loose_d``, their shape unknown.
     """
     cand = [p for p in description.patches if p.id not in claimed and p.n_pixels >= params.min_pixels
             and (_compatible(p.label, f) or (p.label == "OTH" and p.id in unknown))]

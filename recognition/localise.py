@@ -31,7 +31,7 @@ import numpy as np
 
 from recognition.describe import SceneDescription
 from recognition.icp import IcpParams, icp_refine
-from recognition.matching import MatchParams, given_match, match, model_elements, scene_items
+from recognition.matching import MatchParams, given_match, match, model_elements
 from recognition.verify import Prediction, VerifyParams, agreement, predict
 from scenes.model import SceneModel
 from sensors.range_image import Scan
@@ -175,7 +175,7 @@ def overlap_pairings(description: SceneDescription, prediction: Prediction, excl
     return out
 
 
-def _explained(description: SceneDescription, matchable: set[int], items, h) -> np.ndarray:
+def _explained(description: SceneDescription, matchable: frozenset[int], items, h) -> np.ndarray:
     """Bool (H, W): the pixels ICP may use under hypothesis ``h`` - all but those of the ``matchable`` patches
     (indices of patches with a primitive fit that the tree could match) that ``h`` leaves unmatched. Such a
     patch contradicts the model where it is (a new cabinet, a sphere of another radius): it is a change, and
@@ -231,7 +231,6 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
         res = match(description, el, scan.sensor.pixel_pitch_rad, mp, prior)
     else:
         res = given_match(description, el, scan.sensor.pixel_pitch_rad, pairings, mp)
-    matchable = {it.patch_index for it in scene_items(description, scan.sensor.pixel_pitch_rad, mp)}
     timing["matching"] = time.perf_counter() - t0
     patch_ids = [description.patches[it.patch_index].id for it in res.items]
 
@@ -295,7 +294,7 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
         if params.use_icp:
             t0 = time.perf_counter()
             ir = icp_refine(scan, pred_h, model, T_i, params.icp_screen,
-                            _explained(description, matchable, res.items, h))
+                            _explained(description, res.matchable, res.items, h))
             timing["icp"] += time.perf_counter() - t0
             if ir.ok:
                 t0 = time.perf_counter()
@@ -319,7 +318,7 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
     if params.use_icp:
         t0 = time.perf_counter()
         ir = icp_refine(scan, pred_quick, model, T_quick, params.icp,
-                        _explained(description, matchable, res.items, best))
+                        _explained(description, res.matchable, res.items, best))
         timing["icp"] += time.perf_counter() - t0
         if ir.ok:
             T_final, cov, free = ir.T_world_sensor, ir.cov_T_world_sensor, min(free, ir.free_dof)

@@ -556,7 +556,8 @@ class Hypothesis:
 @dataclass(frozen=True)
 class MatchResult:
     """Hypotheses (best score first), the items and elements they index, and search statistics
-    (``stop_reason``: why the search stopped early - node or time budget - or "" when it completed)."""
+    (``stop_reason``: why the search stopped early - node or time budget - or "" when it completed).
+    ``matchable``: the patch indices of every scene item, those without a candidate element included."""
 
     hypotheses: tuple[Hypothesis, ...]
     items: tuple[SceneItem, ...]
@@ -565,6 +566,7 @@ class MatchResult:
     exhausted: bool
     candidates: tuple[int, ...] = field(default=())
     stop_reason: str = ""
+    matchable: frozenset[int] = frozenset()
 
 
 class _FlatPairs:
@@ -930,12 +932,13 @@ def match(description: SceneDescription, model: SceneModel | ModelElements, pixe
     """
     el = model if isinstance(model, ModelElements) else model_elements(model)
     items = scene_items(description, pixel_pitch_rad, params)
+    matchable = frozenset(it.patch_index for it in items)
     cands = [unary_candidates(it, el, params, prior) for it in items]
     keep = [k for k in range(len(items)) if len(cands[k])]
     items = [items[k] for k in keep]
     cands = [cands[k] for k in keep]
     if not items:
-        return MatchResult((), tuple(items), el, 0, True, ())
+        return MatchResult((), tuple(items), el, 0, True, (), matchable=matchable)
     length_m = params.length_m or float(np.median([it.range_m for it in items]))
     s = _Search(items, el, cands, params, length_m)
     s.run()
@@ -949,7 +952,7 @@ def match(description: SceneDescription, model: SceneModel | ModelElements, pixe
     uniq = sorted(_diverse(uniq, s.order, params.max_hypotheses),
                   key=lambda h: (-h.score, h.pose.free_dof, h.pose.cost))
     return MatchResult(tuple(uniq), tuple(items), el, s.n_nodes, not s.stop_reason,
-                       tuple(len(c) for c in cands), s.stop_reason)
+                       tuple(len(c) for c in cands), s.stop_reason, matchable)
 
 
 def given_match(description: SceneDescription, model: SceneModel | ModelElements, pixel_pitch_rad: float,
@@ -974,4 +977,4 @@ def given_match(description: SceneDescription, model: SceneModel | ModelElements
         if pose.ok:
             score = float(sum(items[i].weight for i, e in pairs_idx if e >= 0))
             hyps = (Hypothesis(tuple(pairs_idx), pose, score, len(pairs)),)
-    return MatchResult(hyps, items, el, 0, True)
+    return MatchResult(hyps, items, el, 0, True, matchable=frozenset(it.patch_index for it in items))

@@ -76,7 +76,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from recognition.derivatives import clean_windows, jump_pairs, norm3, quadratic_derivatives, savgol_kernels
-from recognition.quadric import MONOMIAL_GRADIENT, taubin_fit
+from recognition.quadric import MONOMIAL_GRADIENT, quadric_matrices, taubin_fit
 from recognition.surface_fit import (
     _MIN_GRAZING,
     PlaneFit,
@@ -1074,16 +1074,13 @@ def _is_plane_pair(p: np.ndarray, x: np.ndarray, tol: float) -> bool:
     """
     if not np.all(np.isfinite(p)):
         return False
-    A = np.array([[p[0], p[3], p[4]], [p[3], p[1], p[5]], [p[4], p[5], p[2]]])
-    b = p[6:9]
+    A, b, c = quadric_matrices(p)
     mean = x.mean(axis=0)
     R = float(np.sqrt(np.mean(np.sum((x - mean) ** 2, axis=1)))) or 1.0
     # in centred coordinates: f = y'Ay + (2 A mean + b)'y + f(mean)
     b0 = 2 * A @ mean + b
-    c0 = float(mean @ A @ mean + b @ mean + p[9])
-    lam, V = np.linalg.eigh(A)
-    order = np.argsort(-np.abs(lam))
-    lam, V = lam[order], V[:, order]
+    c0 = float(mean @ A @ mean + b @ mean + c)
+    lam, V = _eig_by_magnitude(A)
     l1 = abs(lam[0])
     if l1 == 0 or abs(lam[2]) > tol * l1 or lam[0] * lam[1] >= 0:
         return False
@@ -1095,19 +1092,24 @@ def _is_plane_pair(p: np.ndarray, x: np.ndarray, tol: float) -> bool:
     return abs(c_cano) <= tol * l1 * R * R
 
 
+def _eig_by_magnitude(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues (3,) of the symmetric ``A`` by decreasing magnitude, and their eigenvectors (columns)."""
+    lam, V = np.linalg.eigh(A)
+    order = np.argsort(-np.abs(lam))
+    return lam[order], V[:, order]
+
+
 def _plane_pair_sides(p: np.ndarray, x: np.ndarray) -> np.ndarray:
     """Side (0 or 1) of each point ``x`` (N, 3): the nearer of the two planes of the plane-pair quadric ``p``.
 
     With ``A = l1 v1 v1' + l2 v2 v2'`` (``l1 > 0 > l2``) and centre ``t`` (``2 A t = -b``, in the range of
     ``A``), the quadric is ``(m+ . (y - t)) (m- . (y - t))`` with ``m± = sqrt(l1) v1 ± sqrt(-l2) v2``.
     """
-    A = np.array([[p[0], p[3], p[4]], [p[3], p[1], p[5]], [p[4], p[5], p[2]]])
-    lam, V = np.linalg.eigh(A)
-    order = np.argsort(-np.abs(lam))
-    lam, V = lam[order], V[:, order]
+    A, b, _ = quadric_matrices(p)
+    lam, V = _eig_by_magnitude(A)
     if lam[0] < 0:
         lam = -lam
-    t = np.linalg.pinv(A, rcond=1e-6) @ (-0.5 * p[6:9])
+    t = np.linalg.pinv(A, rcond=1e-6) @ (-0.5 * b)
     m1 = np.sqrt(lam[0]) * V[:, 0] + np.sqrt(-lam[1]) * V[:, 1]
     m2 = np.sqrt(lam[0]) * V[:, 0] - np.sqrt(-lam[1]) * V[:, 1]
     y = x - t
