@@ -58,6 +58,8 @@ class ChangeParams:
         unreliable and their covariances overconfident).
     new_min_pixels : smallest patch that can be reported new.
     new_unexplained_fraction : share of a patch's points that must be unexplained for it to be new.
+    compatible_probability : a patch may show a feature of another class than its label when the classifier
+        gives that feature's class at least this probability (a far, nearly flat face fitted as a sphere).
     """
 
     k_sigma: float = 4.0
@@ -71,10 +73,11 @@ class ChangeParams:
     altered_min_pixels: int = 300
     new_min_pixels: int = 60
     new_unexplained_fraction: float = 0.7
+    compatible_probability: float = 0.2
 
     def __post_init__(self):
         for name in ("k_sigma", "present_fraction", "radius_tolerance", "loose_distance_fraction",
-                     "loose_angle_deg", "new_unexplained_fraction"):
+                     "loose_angle_deg", "new_unexplained_fraction", "compatible_probability"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.min_pixels < 1 or self.new_min_pixels < 1:
@@ -210,6 +213,15 @@ def _primitive_world(patch, T: np.ndarray):
     return None
 
 
+def _plane_through(pts: np.ndarray, viewpoint: np.ndarray) -> dict:
+    """Total-least-squares plane of world points (N, 3) as a primitive dict, its normal towards the
+    ``viewpoint`` (3,) like the fitted planes' (normal sigma unknown)."""
+    c = pts.mean(axis=0)
+    _, V = np.linalg.eigh((pts - c).T @ (pts - c))
+    n = V[:, 0] if np.dot(V[:, 0], viewpoint - c) >= 0 else -V[:, 0]
+    return {"normal": n, "normal_sigma": math.nan, "centroid": c}
+
+
 def _axis_angle(a: np.ndarray, b: np.ndarray) -> float:
     return math.degrees(math.acos(min(1.0, abs(float(np.dot(a, b))))))
 
@@ -323,6 +335,9 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
     for f in model.features:  # predicted invisible
         results.setdefault(f.id, FeatureChange("unobserved", reason="not predicted visible"))
     _propagate_rigid_moves(model, results)
+    if _claim_moved_faces(model, results, description, patch_prims, claimed, T, allowance, loose_d, params,
+                          unexplained):
+        _propagate_rigid_moves(model, results)
 
     candidates = [p for p in description.patches if p.id not in claimed and p.id in unexplained]
     unexplained_free = np.isin(pix_cls, (PIXEL_FRONT, PIXEL_BEHIND)) & (description.labels < 0)
@@ -419,10 +434,15 @@ _COMPATIBLE = {Plane: ("PLAN",), Cylinder: ("CYL", "CONE"), Cone: ("CONE", "CYL"
                Torus: ("OTH",)}
 
 
-def _compatible(label: str, f: Feature) -> bool:
-    """A scene patch of this label may be the feature (an elbow is seen as OTH; a slender cone and a cylinder
-    are easily confused under noise)."""
-    return label in _COMPATIBLE[type(f)]
+def _compatible(patch, f: Feature, min_probability: float = math.inf) -> bool:
+    """A scene patch may be the feature: its label fits the feature's kind (an elbow is seen as OTH; a slender
+    cone and a cylinder are easily confused under noise), or the classifier gives a fitting label at least
+    ``min_probability`` (a far, nearly flat face of 100 pixels fitted as a sphere of 18 m radius)."""
+    kinds = _COMPATIBLE[type(f)]
+    if patch.label in kinds:
+        return True
+    probs = patch.classification.probabilities
+    return any(probs.get(k, 0.0) >= min_probability for k in kinds)
 
 
 def _patch_index(description: SceneDescription, pid: int) -> int:
@@ -449,7 +469,8 @@ def _overlapping_patches(labels_on_feature: np.ndarray, sizes: dict[int, int], m
 
 def _loose_verdict(f: Feature, prev: FeatureChange, description: SceneDescription, patch_prims: dict,
                    claimed: set[int], T: np.ndarray, allowance: np.ndarray, loose_d: float, confirmed_only: bool,
-                   params: ChangeParams, unknown: set[int] = frozenset()) -> FeatureChange | None:
+                   params: ChangeParams, unknown: set[int] = frozenset(), only: set[int] | None = None
+                   ) -> FeatureChange | None:
     """The closest unclaimed scene patch that shows feature ``f`` altered (same place, other shape) or moved
     (same shape within the loose neighbourhood), as a verdict; None when there is none.
 
@@ -457,10 +478,12 @@ def _loose_verdict(f: Feature, prev: FeatureChange, description: SceneDescriptio
     merely one that cannot contradict it, like a cylinder patch for a cone feature). The shape of a patch
     smaller than ``params.altered_min_pixels`` away from the feature's place is not compared (its radius is
     unreliable). ``unknown`` names OTH patches of unexplained points that may show any feature (a far
-    cabinet's corner, two faces in one patch, has no fit) within ``loose_d``, their shape unknown.
+    cabinet's corner, two faces in one patch, has no fit) within ``loose_d``, their shape unknown. With
+    ``only``, just those patches are candidates.
     """
     cand = [p for p in description.patches if p.id not in claimed and p.n_pixels >= params.min_pixels
-            and (_compatible(p.label, f) or (p.label == "OTH" and p.id in unknown))]
+            and (only is None or p.id in only)
+            and (_compatible(p, f, params.compatible_probability) or (p.label == "OTH" and p.id in unknown))]
     # the neighbourhood covers a move of the feature's object: a translation plus a turn of up to the loose
     # angle about the object's centre, which moves the ends of a long feature further than its middle
     reach = loose_d + math.sin(math.radians(params.loose_angle_deg)) * f.size()
@@ -468,8 +491,11 @@ def _loose_verdict(f: Feature, prev: FeatureChange, description: SceneDescriptio
     best = math.inf
     for p in cand:
         prim = patch_prims.get(p.id) or {}
-        dist = float(np.median(f.surface_distance(_patch_world(p, T))))
-        if not _compatible(p.label, f) and dist > loose_d:
+        pts = _patch_world(p, T)
+        if isinstance(f, Plane) and "normal" not in prim and p.label != "OTH":
+            prim = _plane_through(pts, T[:3, 3])  # a nearly flat patch fitted as another kind
+        dist = float(np.median(f.surface_distance(pts)))
+        if not _compatible(p, f, params.compatible_probability) and dist > loose_d:
             continue
         allow = max(float(np.median(allowance.reshape(-1)[p.pixels])), 1e-3)
         place = _same_place(f, prim, allow)
@@ -596,6 +622,35 @@ def _propagate_rigid_moves(model: SceneModel, results: dict[str, FeatureChange],
                 # (a feature gone from its place in an object that moved as a whole moved with it, unseen)
                 results[f.id] = FeatureChange("moved", disp, r.patches, r.found, r.revealed, r.occluded,
                                               "moves with its object")
+
+
+def _claim_moved_faces(model: SceneModel, results: dict[str, FeatureChange], description: SceneDescription,
+                       patch_prims: dict, claimed: set[int], T: np.ndarray, allowance: np.ndarray, loose_d: float,
+                       params: ChangeParams, unexplained: set[int]) -> bool:
+    """The features of a moved object seen at its new place: in an object with a moved feature, each feature
+    without a supporting patch (moved with its object unseen, or not predicted visible at its old place: a
+    cabinet's side turned into view) takes the closest unexplained, unclaimed patch that loose matching
+    accepts for it. Such a patch is that feature displaced, not something new. Returns whether any was found.
+    """
+    found = False
+    for obj in model.objects:
+        if not any(results[f.id].label == "moved" for f in obj.features) or \
+                object_label([results[f.id] for f in obj.features]) != "moved":
+            continue
+        for f in obj.features:
+            r = results[f.id]
+            if r.patches or r.label not in ("moved", "unobserved", "missing"):
+                continue
+            free = {q for q in unexplained if q not in claimed}
+            verdict = _loose_verdict(f, r, description, patch_prims, claimed, T, allowance, loose_d, False, params,
+                                     unexplained, only=free)
+            if verdict is None or verdict.label != "moved":
+                continue
+            fragments = _fragments_of(verdict.patches[0], description, patch_prims, claimed, T, allowance, f)
+            results[f.id] = replace(verdict, patches=verdict.patches + fragments, reason="seen moved with its object")
+            claimed.update(results[f.id].patches)
+            found = True
+    return found
 
 
 def object_label(changes: list[FeatureChange]) -> str:

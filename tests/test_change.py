@@ -256,3 +256,26 @@ def test_a_feature_gone_from_an_object_that_moved_as_a_whole_moved_with_it(sibli
         assert object_label(list(results.values())) == "moved"
     else:
         assert results["run.s2"].label == "missing"
+
+
+def test_a_feature_hidden_at_the_old_place_is_found_moved_with_its_object():
+    """A pipe run behind a cabinet lifted into view: its lower section, hidden at the a priori place (not
+    predicted visible), is seen at the new place. It moved with its object; it is not something new."""
+    floor = builders.floor("floor", 8.0, 6.0)
+    wall = builders.wall("wall", (0.0, 2.0, 0.0), 0.0, 8.0, 3.0, 0.2)
+    cab = builders.cabinet("cab", (-1.5, 0.2, 0.0), 0.0, (0.8, 0.5, 0.9))
+    run = builders.pipe_run("run", [[-1.9, 1.2, 0.45], [-1.2, 1.2, 0.45], [-1.2, 1.2, 1.6]], 0.08, 0.2)
+    T_move = make_transform(np.eye(3), np.array([0.3, 0.0, 0.55]))
+    apriori = SceneModel("t", (floor, wall, cab, run))
+    actual = SceneModel("t", (floor, wall, cab, run.transformed(T_move)))
+    T = look_at([0.0, -5.0, 2.2], [0.0, 0.8, 0.7])
+    scan, truth = Simulator.from_scene(actual).simulate(sensor_from_yaml(SENSOR), T, np.random.default_rng(0))
+    desc = truth_classification(describe(scan, segmentation=truth_segmentation(scan, truth, core_sigma(scan))), truth)
+    predictor = ModelPredictor(apriori)
+    assert "run.s0" not in predictor.predict(scan.sensor, T).feature_pixels()  # hidden by the cabinet
+    result = detect_changes(desc, scan, apriori, truth.T_world_sensor, predictor=predictor)
+    s0 = result.features["run.s0"]
+    assert s0.label == "moved" and s0.patches
+    assert s0.displacement_m == pytest.approx(0.55, abs=0.05)  # the move across the pipe's axis
+    assert result.objects["run"] == "moved"
+    assert result.new_patches == ()
