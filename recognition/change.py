@@ -300,9 +300,13 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
                 results[fid] = FeatureChange("unobserved", None, (), found, revealed, occluded)
                 pending.append(fid)
                 continue
-            altered = _altered_by_patches(f, [q for q in overlapping if sizes[q] >= params.altered_min_pixels],
-                                          patch_prims, sizes, params)
+            # a patch in front of the feature's predicted surface, at its place: the feature itself, grown
+            # (a pipe of a larger radius comes nearer the sensor than the allowance)
+            in_front = _patches_in_place(f, label_flat[pix[c == PIXEL_FRONT]], sizes, patch_prims, allow)
+            judged_patches = [q for q in overlapping + in_front if sizes[q] >= params.altered_min_pixels]
+            altered = _altered_by_patches(f, judged_patches, patch_prims, sizes, params)
             claimed.update(overlapping)
+            claimed.update(altered)
             if altered:
                 results[fid] = FeatureChange("altered", None, tuple(altered), found, revealed, occluded,
                                              "fitted shape differs from the model")
@@ -514,6 +518,15 @@ def _loose_verdict(f: Feature, prev: FeatureChange, description: SceneDescriptio
     return verdict
 
 
+def _patches_in_place(f: Feature, labels_in_front: np.ndarray, sizes: dict[int, int], prims: dict,
+                      allowance_m: float) -> list[int]:
+    """Patches over a feature's pixels where the data lie in front of the predicted surface
+    (``labels_in_front``: their patch labels) whose fitted primitive sits at the feature's place: the
+    feature itself grown (a pipe of a larger radius), not something occluding it."""
+    return [q for q in _overlapping_patches(labels_in_front, sizes)
+            if prims.get(q) is not None and _same_place(f, prims[q], allowance_m)]
+
+
 def _altered_by_patches(f: Feature, patch_ids: list[int], prims: dict, sizes: dict[int, int],
                         params: ChangeParams) -> list[int]:
     """Patches on the feature whose fitted shape parameters disagree with it (radius of every observed
@@ -614,14 +627,17 @@ def _propagate_rigid_moves(model: SceneModel, results: dict[str, FeatureChange],
         if not moved or obj.kind == "pipe_run" and len(moved) < 2:
             continue  # one moved section of a pipe run is a section move, not an object move
         disp = float(np.median([m.displacement_m for m in moved if m.displacement_m is not None] or [np.nan]))
-        whole = all(results[f.id].label in ("moved", "missing", "unobserved") for f in obj.features)
         for f in obj.features:
             r = results[f.id]
-            if r.label == "unchanged" and r.revealed >= revealed_share * max(r.found + r.revealed, 1) or \
-                    r.label == "missing" and whole:
-                # (a feature gone from its place in an object that moved as a whole moved with it, unseen)
+            if r.label == "unchanged" and r.revealed >= revealed_share * max(r.found + r.revealed, 1):
                 results[f.id] = FeatureChange("moved", disp, r.patches, r.found, r.revealed, r.occluded,
                                               "moves with its object")
+        if all(results[f.id].label in ("moved", "missing", "unobserved") for f in obj.features):
+            for f in obj.features:  # gone from its place in an object that moved as a whole: moved with it, unseen
+                r = results[f.id]
+                if r.label == "missing":
+                    results[f.id] = FeatureChange("moved", disp, r.patches, r.found, r.revealed, r.occluded,
+                                                  "moves with its object")
 
 
 def _claim_moved_faces(model: SceneModel, results: dict[str, FeatureChange], description: SceneDescription,

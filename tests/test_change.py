@@ -234,10 +234,11 @@ def test_a_new_region_takes_the_unexplained_pixels_left_out_of_every_patch():
     assert np.array_equal(grown[7], np.union1d(face, np.flatnonzero(grazing)))
 
 
-@pytest.mark.parametrize("sibling", ["moved", "unchanged"])
+@pytest.mark.parametrize("sibling", ["moved", "unchanged", "revealed"])
 def test_a_feature_gone_from_an_object_that_moved_as_a_whole_moved_with_it(sibling):
     """Counting (the paper's semantic layer): a pipe run whose sections moved, one of them not found at the
-    new place but revealed at the old one, moved as a whole - unless a section stayed (a section move)."""
+    new place but revealed at the old one, moved as a whole - unless a section stayed (a section move). A
+    section found in place but partly revealed (it moved along itself) moved too, whatever its order."""
     from recognition.change import _propagate_rigid_moves
     from scenes.features import Cylinder
     from scenes.model import Object, SceneModel
@@ -248,9 +249,13 @@ def test_a_feature_gone_from_an_object_that_moved_as_a_whole_moved_with_it(sibli
     results = {"run.s0": FeatureChange("moved", 0.2, (1,), 0, 300, 0),
                "run.s1": FeatureChange("moved", 0.3, (2,), 0, 300, 0),
                "run.s2": FeatureChange("missing", None, (), 0, 250, 0),
-               "run.s3": FeatureChange(sibling, 0.25 if sibling == "moved" else None, (3,), 300, 0, 0)}
+               "run.s3": FeatureChange("unchanged" if sibling == "revealed" else sibling,
+                                       0.25 if sibling == "moved" else None, (3,), 300,
+                                       100 if sibling == "revealed" else 0, 0)}
     _propagate_rigid_moves(model, results)
-    if sibling == "moved":
+    if sibling == "revealed":
+        assert [results[f"run.s{k}"].label for k in range(4)] == ["moved"] * 4
+    elif sibling == "moved":
         assert results["run.s2"].label == "moved"
         assert results["run.s2"].displacement_m == pytest.approx(0.25)
         assert object_label(list(results.values())) == "moved"
@@ -279,3 +284,23 @@ def test_a_feature_hidden_at_the_old_place_is_found_moved_with_its_object():
     assert s0.displacement_m == pytest.approx(0.55, abs=0.05)  # the move across the pipe's axis
     assert result.objects["run"] == "moved"
     assert result.new_patches == ()
+
+
+def test_a_coaxial_patch_in_front_of_a_feature_is_the_feature_grown():
+    """A pipe of a larger radius lies nearer the sensor than its model: the patch over the feature's pixels
+    in front of the prediction, on the model's axis, is the altered feature; an occluder elsewhere is not."""
+    from recognition.change import _altered_by_patches, _patches_in_place
+    from scenes.features import Cylinder
+
+    f = Cylinder("run.s0", centre=np.array([0.0, 0.0, 1.0]), axis=np.array([0.0, 1.0, 0.0]), radius=0.07, length=1.2)
+    prims = {11: {"point": np.array([0.0, 0.3, 1.0]), "axis": np.array([0.0, 1.0, 0.0]), "radius": 0.098,
+                  "radius_sigma": 2e-4, "axis_sigma": 3e-4},
+             12: {"point": np.array([0.0, 0.0, 1.5]), "axis": np.array([0.0, 1.0, 0.0]), "radius": 0.098,
+                  "radius_sigma": 2e-4, "axis_sigma": 3e-4}}
+    sizes = {11: 1800, 12: 900, 32: 170}
+    in_front = np.array([11] * 1700 + [12] * 800 + [-1] * 50)
+    assert _patches_in_place(f, in_front, sizes, prims, 5e-3) == [11]
+    params = ChangeParams()
+    assert _altered_by_patches(f, [32] + _patches_in_place(f, in_front, sizes, prims, 5e-3), prims, sizes,
+                               params) == [11]
+    assert _altered_by_patches(f, [32], prims, sizes, params) == []  # the OTH rim patch alone says nothing
