@@ -196,7 +196,7 @@ def test_describe_command_writes_its_outputs(tmp_path, capsys):
 
 def test_describe_command_errors(tmp_path, capsys):
     assert harness_main(["describe", str(BOXES[1]), "--model", "x.yaml", "--out", str(tmp_path)]) == 2
-    assert "--model is not built yet" in capsys.readouterr().err
+    assert "x.yaml" in capsys.readouterr().err  # a missing model file is named
     bad = tmp_path / "bad.pcd"
     bad.write_bytes(b"VERSION 0.7\nFIELDS x y\nSIZE 4 4\nTYPE F F\nWIDTH 1\nDATA ascii\n1 2\n")
     assert harness_main(["describe", str(bad), "--out", str(tmp_path / "o")]) == 2

@@ -10,7 +10,13 @@ runs segmentation and classification (:func:`recognition.describe.describe`) and
 - ``shaded.png`` (cosine-shaded range image), ``regions.png`` (patches coloured by id, black = none) and
   ``classes.png`` (pixels coloured by their patch's class).
 
-``--model`` (matching, pose and change detection against an a priori model) comes once those stages exist.
+With ``--model SCENE`` (an a priori scene YAML, world frame), the scan is also localised against the model
+(:func:`recognition.localise.localise`: matching, pose, verification, ICP; a pose prior saved in an ``.npz`` scan
+restricts the search) and, when a pose is found, its changes are detected
+(:func:`recognition.change.detect_changes`). ``description.json`` then carries ``pose`` (``T_world_sensor``
+before and after ICP, covariance, free degrees of freedom, confidence, pairings) and ``change`` (every model
+feature's and object's label, displacements, new patches); ``changes.md`` lists them and ``changes.png`` is the
+change map over the shaded image.
 """
 
 from __future__ import annotations
@@ -20,12 +26,14 @@ import dataclasses
 import json
 import math
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
 from recognition.classify import CLASSES
 from recognition.describe import CLASSIFIERS, DescribeParams, SceneDescription, describe
+from scenes.model import SceneModel
 from sensors.config import preset_names
 from sensors.io import save_labels_png, save_shaded_png
 from sensors.readers import FORMATS, LoadedScan, load_scan
@@ -58,14 +66,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--classifier", choices=CLASSIFIERS, default="select",
                         help="select (the core's model-selection classifier, default) or paper (the paper's rule)")
     parser.add_argument("--model", type=Path, metavar="SCENE",
-                        help="a priori model for matching, pose and change detection (not built yet)")
+                        help="a priori scene YAML: also localise the scan against it and detect its changes")
     parser.add_argument("--out", type=Path, required=True, help="output directory")
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.model is not None:
-        raise ValueError("--model is not built yet: matching, pose and change detection against an a priori model "
-                         "come in a later issue (DESIGN 10.12); run without --model for the scene description")
+    model = SceneModel.load(args.model) if args.model is not None else None  # a bad YAML fails before any work
     t0 = time.perf_counter()
     loaded = load_scan(args.file, intrinsics=args.intrinsics, intrinsics_file=args.intrinsics_file,
                        sensor_preset=args.sensor_preset, depth_scale=args.depth_scale, origin=args.origin,
@@ -75,6 +81,20 @@ def run(args: argparse.Namespace) -> int:
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     doc = description_dict(loaded, desc, args.classifier, read_s)
+    located = changes = None
+    if model is not None:
+        located, changes = localise_and_compare(desc, loaded.scan, model)
+        doc["model"] = {"file": str(args.model), "name": model.name, "n_objects": len(model.objects),
+                        "n_features": len(model.features)}
+        doc["pose"] = pose_dict(located)
+        doc["change"] = change_dict(changes) if changes is not None else None
+        (out / "changes.md").write_text(change_table(located, changes, model, title=args.file.name), encoding="utf-8")
+        if changes is not None:
+            from reports.figures import change_picture
+            from sensors.io import shaded_image
+
+            (out / "changes.png").write_bytes(change_picture(shaded_image(loaded.scan), changes.label_map,
+                                                             f"{args.file.name}: change labels"))
     (out / "description.json").write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n", encoding="utf-8")
     (out / "table.md").write_text(paper_table(desc, title=f"{args.file.name} ({args.classifier} classifier)"),
                                   encoding="utf-8")
@@ -85,7 +105,79 @@ def run(args: argparse.Namespace) -> int:
     print(f"{args.file.name}: {loaded.scan.shape[1]}x{loaded.scan.shape[0]}, {loaded.info.n_valid} returns, "
           f"{len(desc.patches)} patches (" + ", ".join(f"{n} {c}" for c, n in counts.items() if n) + "), "
           f"read {read_s:.2f} s, describe {sum(desc.timing_s.values()):.2f} s -> {out}")
+    if located is not None:
+        if not located.ok:
+            print(f"  pose: not found ({located.reason})")
+        else:
+            t = located.T_world_sensor[:3, 3]
+            print(f"  pose: sensor at ({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) m, confidence {located.confidence:.2f}, "
+                  f"{located.free_dof} free dof")
+        if changes is not None:
+            tally = Counter(r.label for r in changes.features.values())
+            print("  change: " + ", ".join(f"{n} {lab}" for lab, n in sorted(tally.items())) +
+                  f", {len(changes.new_patches)} new region(s)")
     return 0
+
+
+# ------------------------------------------------------------------------------------------------ with a model
+
+
+def localise_and_compare(desc: SceneDescription, scan, model: SceneModel):
+    """``(PoseResult, ChangeResult or None)``: the scan localised against ``model``, and its changes when a
+    pose was found."""
+    from recognition.change import detect_changes
+    from recognition.localise import localise
+
+    located = localise(desc, scan, model)
+    if not located.ok or located.T_world_sensor is None:
+        return located, None
+    return located, detect_changes(desc, scan, model, located.T_world_sensor, located.cov_T_world_sensor,
+                                   predicted=located.predicted)
+
+
+def pose_dict(located) -> dict:
+    """A :class:`recognition.localise.PoseResult` as plain data (world frame, metres; covariance over rotation
+    vector (rad) and translation (m))."""
+    return {
+        "ok": bool(located.ok), "reason": located.reason,
+        "T_world_sensor": _plain(located.T_world_sensor),
+        "T_world_sensor_initial": _plain(located.T_world_sensor_initial),
+        "cov_T_world_sensor": _plain(located.cov_T_world_sensor),
+        "free_dof": int(located.free_dof), "confidence": _plain(float(located.confidence)),
+        "pairings": [{"patch": int(pid), "feature": fid} for pid, fid in located.pairings],
+        "n_hypotheses": int(located.n_hypotheses), "time_s": _plain(located.timing_s),
+    }
+
+
+def change_dict(changes) -> dict:
+    """A :class:`recognition.change.ChangeResult` as plain data (displacements in metres)."""
+    return {
+        "features": {fid: {"label": r.label, "displacement_m": _plain(r.displacement_m), "patches": list(r.patches),
+                           "found": r.found, "revealed": r.revealed, "occluded": r.occluded, "reason": r.reason}
+                     for fid, r in changes.features.items()},
+        "objects": dict(changes.objects),
+        "new_patches": [int(p) for p in changes.new_patches],
+        "time_s": _plain(changes.timing_s),
+    }
+
+
+def change_table(located, changes, model: SceneModel, title: str = "") -> str:
+    """Markdown: the pose found (or why none) and every object's and observed feature's change label."""
+    lines = [f"# {title}: against the a priori model {model.name!r}", ""]
+    if not located.ok:
+        return "\n".join(lines + [f"No pose: {located.reason}. No change detection without a pose.", ""])
+    t = located.T_world_sensor[:3, 3]
+    lines += [f"Pose: sensor at ({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) m, confidence {located.confidence:.2f}, "
+              f"{located.free_dof} degrees of freedom unconstrained.", "",
+              "| object | label | features (label) |", "|:---|:---|:---|"]
+    for obj in model.objects:
+        feats = ", ".join(f"{f.id} ({changes.features[f.id].label}"
+                          + (f", {1e3 * changes.features[f.id].displacement_m:.0f} mm"
+                             if changes.features[f.id].displacement_m is not None else "") + ")"
+                          for f in obj.features if changes.features[f.id].label != "unobserved")
+        lines.append(f"| {obj.id} | {changes.objects[obj.id]} | {feats or '(none observed)'} |")
+    lines += ["", f"New regions (patch ids): {', '.join(map(str, changes.new_patches)) or 'none'}", ""]
+    return "\n".join(lines)
 
 
 # ------------------------------------------------------------------------------------------------ outputs
@@ -190,4 +282,4 @@ def save_class_png(path: Path, desc: SceneDescription) -> None:
 
 
 __all__ = ["NAME", "HELP", "add_arguments", "run", "paper_table", "description_dict", "patch_dict",
-           "primitive_dict", "save_class_png"]
+           "primitive_dict", "save_class_png", "localise_and_compare", "pose_dict", "change_dict", "change_table"]
