@@ -404,5 +404,9 @@ def _draw_new(object_id: str, spec: PerturbationSpec, rng: np.random.Generator,
         q = p + length * np.array([math.cos(phi), math.sin(phi), 0.0])
         return builders.pipe_run(object_id, [p, q], r, 2 * r, material="metal")
     w, d, h = (spec.new_box_size.draw(rng) for _ in range(3))
+    if xmax - xmin < 2 * w or ymax - ymin < 2 * w:
+        raise ValueError(f"a new box of {w:.2f} m does not fit the scene's floor ({xmax - xmin:.2f} x "
+                         f"{ymax - ymin:.2f} m): the perturbation spec's new_box_size is for a larger scene "
+                         "(the mock-up has its own spec, scenes/data/mockup_perturbation.yaml)")
     x, y = rng.uniform(xmin + w, xmax - w), rng.uniform(ymin + w, ymax - w)
     return builders.cabinet(object_id, (x, y, 0.0), rng.uniform(0, np.pi), (w, d, h))

@@ -132,6 +132,13 @@ def test_perturbation_cli_writes_actual_and_truth(tmp_path):
     assert {f.id for f in actual.features} >= set(truth.new_features)
 
 
+def test_factory_magnitudes_on_the_mockup_give_a_clear_error(tmp_path, capsys):
+    # the default spec's new boxes are larger than the mock-up's floor: say so, not numpy's "high - low < 0"
+    assert main(["scene", "perturb", str(shipped_scene("mockup")), "--seed", "3", "--out", str(tmp_path / "p")]) == 2
+    assert "does not fit the scene's floor" in capsys.readouterr().err
+    assert not (tmp_path / "p").exists()
+
+
 @pytest.mark.parametrize("text, message", [
     ("moved: {probability: 1.5}", r"moved\.probability: must be <= 1"),
     ("moved: {probability: 0.6}\nmissing: {probability: 0.6}", "probabilities must be <= 1"),
