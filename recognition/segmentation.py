@@ -225,6 +225,9 @@ class SegmentationParams:
         pipe close to a noisy sensor is curved within the curvature noise, and its tiles were left apart.
         Kinect-like correct detection on the default suite 0.38 -> 0.42 and `select` accuracy 0.63 -> 0.71,
         for more merge fits.
+    axis_split_pixels : int or None
+        Curved patches of at least this many pixels are cut along their axis where the radius changes (a pipe
+        merged with its reducer or elbow, see :func:`_split_along_axis`); None: never.
     """
 
     window: int = 7
@@ -261,6 +264,7 @@ class SegmentationParams:
     absorb_k: float = 4.0
     max_noise_scale: float = 10.0
     curved_planar_merge: bool = True
+    axis_split_pixels: int | None = 1500
 
     def __post_init__(self) -> None:
         if not isinstance(self.window, int | np.integer) or self.window < 3 or self.window % 2 == 0:
@@ -1628,11 +1632,127 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
         split = _split_plane_pairs(labels, st_full, params)
         if split is not labels:  # a split-off side too small to stand alone goes to the face it belongs to
             labels = _absorb_fragments(split, st_full, jump_h, jump_v, params.min_region_pixels, params.absorb_k)
+        if params.axis_split_pixels is not None:
+            labels = _split_along_axis(labels, st_full, cur.normals.reshape(-1, 3), params)
     edges = _edge_image(shape, jump_h, jump_v)
     edges[crease] |= np.uint8(EdgeType.CREASE)
     labels = _peel_weak(labels, params.min_region_pixels, jump_h, jump_v)
     labels, patches = _finalise(labels, st_full, params, declared.ravel())
     return Segmentation(labels, hk, cur.H, cur.K, cur.sigma_H, cur.sigma_K, cur.normals, edges, patches, scale)
+
+
+def _split_along_axis(labels: np.ndarray, st: _State, normals: np.ndarray, params: SegmentationParams,
+                      passes: int = 3) -> np.ndarray:
+    """Cut curved patches along their axis where the radius changes.
+
+    Under strong noise a pipe, its reducer and the next pipe (or a pipe and its elbow) join smoothly enough
+    for one quadric to fit their union within the noise, and the curvature classes cannot tell a 5 deg cone
+    from a cylinder. Along the axis of a cylinder fitted to the patch, the median distance of its points to
+    the axis (per slice half a radius long) is constant over a pipe, linear over a reducer, and turns at a
+    join: the patch is cut there (:func:`_axial_pieces`). Applied ``passes`` times, so that a piece holding
+    a reducer and a pipe is cut again.
+    """
+    out = labels
+    for _ in range(passes):
+        nxt = int(out.max()) + 1
+        changed = False
+        big = [idx for idx in _groups(out).values() if idx.size >= params.axis_split_pixels]
+        # curved: no plane fits it (the H-K classes are no guide: under strong noise a pipe's are mostly planar)
+        _, zp = _quick_fits([_subsample(v, params.max_fit_points) for v in big], np.ones(len(big), bool), st)
+        for idx, z in zip(big, zp, strict=True):
+            if _rms(z) <= params.merge_k:
+                continue
+            side = _axial_pieces(st.X[idx], st.S[idx], normals[idx], params.min_region_pixels)
+            if side is None:
+                continue
+            if out is labels:
+                out = labels.copy()
+            out.reshape(-1)[idx[side == 1]] = nxt
+            nxt += 1
+            changed = True
+        if not changed:
+            break
+    return out
+
+
+def _axial_pieces(x: np.ndarray, s: np.ndarray, n: np.ndarray, min_pixels: int, fit_points: int = 2000,
+                  flat_fraction: float = 0.03, min_bins: int = 3) -> np.ndarray | None:
+    """Two pieces (0 and 1 per point) of a curved patch along its axis, or None when it is one surface.
+
+    The axis is the direction the normals turn about (shared by a pipe and its reducer); the patch is cut
+    into slices half a radius long along it. A
+    cylinder's slices keep one median distance to the axis, a cone's change it linearly (so does a cylinder's
+    under a slightly tilted axis), so the profile of one surface is a line, within
+    ``max(3 sigma of the median, flat_fraction * radius)`` per slice. A profile that is not is cut where two
+    lines, fitted on either side, explain it best; each side needs ``min_bins`` slices and at least
+    ``min_pixels`` points and a tenth of the patch. A patch whose profile about the axis of a cylinder fitted
+    to it is one line is not cut (a pipe whose normals gave a slightly tilted axis).
+
+    ``x`` points (N, 3), ``s`` their range sigmas (N,), ``n`` their unit normals (N, 3) (NaN where undefined).
+    """
+    ok = np.isfinite(n).all(axis=1)
+    if ok.sum() < 20:
+        return None
+    w = np.linalg.eigvalsh(n[ok].T @ n[ok])
+    if w[0] > 0.05 * w.sum() or w[1] < 0.05 * w.sum():
+        return None  # the normals do not turn about one axis (a doubly curved patch), or barely turn (a plane)
+    # the axis: the direction on which the normals' projection is most nearly constant (zero on a cylinder,
+    # the sine of the half-angle on a cone; the normals' scatter itself tilts on a partly seen cone)
+    axis = np.linalg.eigh(np.cov(n[ok].T))[1][:, 0]
+    e1 = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    sub = _subsample(np.arange(len(x)), fit_points)
+    P = np.stack([x[sub] @ e1, x[sub] @ e2], axis=1)  # the section: an algebraic circle across the axis
+    sol = np.linalg.lstsq(np.column_stack([2.0 * P, np.ones(len(P))]), np.sum(P**2, axis=1), rcond=None)[0]
+    r2 = sol[2] + sol[:2] @ sol[:2]
+    if not r2 > 0:
+        return None
+    centre, radius = sol[0] * e1 + sol[1] * e2, float(np.sqrt(r2))
+    side = _axial_cut(x, s, centre, axis, radius, min_bins, flat_fraction)
+    if side is None or min(np.sum(side == 0), np.sum(side == 1)) < max(min_pixels, len(x) // 10):
+        return None
+    # the normals' axis of a noisy pipe may be a degree off, which bends its profile: a pipe whose fitted
+    # cylinder's profile is one line is one surface
+    from recognition.primitives import fit_cylinder
+
+    cyl = fit_cylinder(x[sub], s[sub], init=(centre, axis, radius), max_points=600, huber=1.5, max_iter=10)
+    if cyl.ok and _axial_cut(x, s, cyl.point, cyl.axis, cyl.radius, min_bins, flat_fraction) is None:
+        return None
+    return side
+
+
+def _axial_cut(x: np.ndarray, s: np.ndarray, point: np.ndarray, axis: np.ndarray, radius: float, min_bins: int,
+               flat_fraction: float) -> np.ndarray | None:
+    """The cut of :func:`_axial_pieces` about the axis through ``point``: side (0 or 1) per point, or None."""
+    q = x - point
+    t = q @ axis
+    rho = np.linalg.norm(q - np.outer(t, axis), axis=1)
+    b = np.floor((t - t.min()) / (radius / 2.0)).astype(np.int64)
+    nb = int(b.max()) + 1
+    cnt = np.bincount(b, minlength=nb)
+    full = np.flatnonzero(cnt >= 20)
+    if full.size < 2 * min_bins:
+        return None
+    order = np.lexsort((rho, b))
+    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+    med = rho[order[start[full] + cnt[full] // 2]]
+    tol = np.maximum(3.0 * 1.25 * np.bincount(b, weights=s, minlength=nb)[full] / cnt[full] ** 1.5,
+                     flat_fraction * radius)
+
+    def worst(lo: int, hi: int) -> float:
+        """Largest deviation (in tolerances) of slices lo..hi-1 from their weighted line."""
+        c = np.polyfit(full[lo:hi], med[lo:hi], 1, w=np.sqrt(cnt[full[lo:hi]]))
+        return float(np.max(np.abs(np.polyval(c, full[lo:hi]) - med[lo:hi]) / tol[lo:hi]))
+
+    m = full.size
+    whole = worst(0, m)
+    if whole <= 1.0:
+        return None
+    cost, k = min((max(worst(0, k), worst(k, m)), k) for k in range(min_bins, m - min_bins + 1))
+    if cost >= whole / 2:
+        return None  # no cut explains the profile much better than one surface does
+    return (b >= full[k]).astype(np.int64)
 
 
 def _split_disconnected(labels: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -561,3 +561,41 @@ def test_a_patch_spanning_two_faces_is_split_along_its_crease(roof):
         assert n.max() >= 0.99 * n.sum(), (face, got, n)
         dominant.append(got[np.argmax(n)])
     assert dominant[0] != dominant[1]
+
+
+def _pipe_run_points(profile, length: float, sigma: float, seed: int = 0, n: int = 6000):
+    """Points and normals of the front half of a surface of revolution about the x axis, radius ``profile(t)``
+    for t in [0, length], with radial noise ``sigma``."""
+    rng = np.random.default_rng(seed)
+    t = rng.uniform(0.0, length, n)
+    phi = rng.uniform(-1.2, 1.2, n)  # the side facing a sensor on -z
+    r = profile(t)
+    slope = np.gradient(profile(np.linspace(0, length, 2001)), np.linspace(0, length, 2001))
+    dr = np.interp(t, np.linspace(0, length, 2001), slope)
+    radial = np.stack([np.zeros(n), np.sin(phi), -np.cos(phi)], axis=1)
+    x = np.column_stack([t, np.zeros(n), np.full(n, 3.0)]) + (r + rng.normal(0.0, sigma, n))[:, None] * radial
+    normals = radial - dr[:, None] * np.array([1.0, 0.0, 0.0])
+    return x, normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("shape", ["pipe+reducer", "pipe", "cone"])
+def test_a_pipe_and_its_reducer_are_cut_apart_along_the_axis(shape):
+    """A pipe (r = 0.1 m, 1.2 m) and a 6 deg reducer merged under 5 mm noise: cut within a slice of the join.
+    A pipe or a cone alone is one surface along its axis: never cut."""
+    from recognition.segmentation import _axial_pieces
+
+    join, tan = 1.2, np.tan(np.radians(6.0))
+    profiles = {"pipe+reducer": lambda t: np.where(t < join, 0.1, 0.1 - (t - join) * tan),
+                "pipe": lambda t: np.full_like(t, 0.1), "cone": lambda t: 0.14 - t * tan}
+    length = {"pipe+reducer": 1.6, "pipe": 1.2, "cone": 0.8}[shape]
+    x, normals = _pipe_run_points(profiles[shape], length, 0.005)
+    side = _axial_pieces(x, np.full(len(x), 0.005), normals, 200)
+    if shape != "pipe+reducer":
+        assert side is None
+        return
+    assert side is not None
+    t = x[:, 0]
+    reducer = t > join
+    wrong = np.mean(side != np.where(reducer, side[np.argmax(t)], side[np.argmin(t)]))
+    assert side[np.argmax(t)] != side[np.argmin(t)]
+    assert wrong < 0.06  # a slice is half a radius (5 cm): at most about one slice on the wrong side
