@@ -1122,10 +1122,83 @@ def _plane_pair_sides(p: np.ndarray, x: np.ndarray) -> np.ndarray:
     return (d2 < d1).astype(np.int8)
 
 
-def _split_plane_pairs(labels: np.ndarray, st: _State, params: SegmentationParams) -> np.ndarray:
+def _k_planes(x: np.ndarray, u: np.ndarray, s: np.ndarray, normals: np.ndarray, k: int,
+              iterations: int = 10) -> np.ndarray | None:
+    """Part (0 .. k-1) of each point ``x`` (N, 3) by k planes fitted alternately (k-planes): each point goes
+    to the plane nearest along its ray ``u`` (in its sigmas ``s``), each plane is refitted to its points.
+    Started from the points' ``normals`` (N, 3, NaN where undefined) grouped about k mutually distant ones;
+    None when a part empties."""
+    ok = np.flatnonzero(np.isfinite(normals).all(axis=1))
+    if ok.size < 3 * k:
+        return None
+    nn = normals[ok]
+    centres = [nn[np.argmin(nn @ nn.mean(axis=0))]]  # the normal least like the mean, then farthest ones
+    for _ in range(1, k):
+        centres.append(nn[np.argmin(np.max(nn @ np.array(centres).T, axis=1))])
+    part = np.full(len(x), -1)
+    part[ok] = np.argmax(nn @ np.array(centres).T, axis=1)
+    for _ in range(iterations):
+        z = np.full((k, len(x)), np.inf)
+        for j in range(k):
+            m = part == j
+            if m.sum() < 3:
+                return None
+            c = x[m].mean(axis=0)
+            n = np.linalg.eigh((x[m] - c).T @ (x[m] - c))[1][:, 0]
+            z[j] = np.abs((x - c) @ n) / (np.maximum(np.abs(u @ n), _MIN_GRAZING) * s)
+        new = np.argmin(z, axis=0)
+        if np.array_equal(new, part):
+            break
+        part = new
+    return part
+
+
+def _broad(x: np.ndarray, s: np.ndarray, ratio: float = 10.0) -> bool:
+    """Whether points ``x`` (N, 3) spread across their plane (the narrower in-plane standard deviation) over
+    ``ratio`` times their median sigma ``s``: a face, not a strip of a pipe that the noise lets pass for flat."""
+    c = x.mean(axis=0)
+    w = np.linalg.eigvalsh((x - c).T @ (x - c) / len(x))
+    return bool(np.sqrt(max(w[1], 0.0)) >= ratio * float(np.median(s)))
+
+
+def _trimmed_rms(z: np.ndarray, keep: float = 0.9) -> float:
+    """RMS of the smallest ``keep`` share of ``z`` (the pixels mixed at a crease are the rest)."""
+    return _rms(np.sort(z)[: max(int(keep * z.size), 1)])
+
+
+_FACE_COS = np.cos(np.radians(30.0))  # faces cut apart by _split_faces meet at 30 deg or more
+
+
+def _split_faces(out: np.ndarray, idx: np.ndarray, st: _State, normals: np.ndarray, params: SegmentationParams,
+                 nxt: int) -> tuple[np.ndarray, int]:
+    """Cut the patch of pixels ``idx`` into the two or three faces (:func:`_k_planes`) that each fit a plane
+    within ``1.5 merge_k`` (but for a tenth of their pixels, mixed at the creases: a far box's faces are a
+    few pixels wide), are broad against the noise (:func:`_broad`) and meet at 30 deg or more (not one face
+    with a few stray pixels); ``(labels, next label)``."""
+    for k in (2, 3):
+        part = _k_planes(st.X[idx], st.U[idx], st.S[idx], normals[idx], k)
+        if part is None:
+            continue
+        faces = [idx[part == j] for j in range(k)]
+        if min(f.size for f in faces) < params.min_patch_pixels or not all(_broad(st.X[f], st.S[f]) for f in faces):
+            continue
+        Pf, zf = _quick_fits([_subsample(f, params.max_fit_points) for f in faces], np.ones(k, bool), st)
+        cos = np.abs(Pf[:, 6:9] @ Pf[:, 6:9].T)[np.triu_indices(k, 1)]
+        if np.all(cos <= _FACE_COS) and all(_trimmed_rms(z) <= 1.5 * params.merge_k for z in zf):
+            out = out.copy()
+            for f in faces[1:]:
+                out.reshape(-1)[f] = nxt
+                nxt += 1
+            break
+    return out, nxt
+
+
+def _split_plane_pairs(labels: np.ndarray, st: _State, params: SegmentationParams,
+                       normals: np.ndarray | None = None) -> np.ndarray:
     """Cut each patch that no plane fits (RMS beyond ``merge_k``) but a plane pair does (two faces of a far,
     small box whose crease the curvature could not see, reassembled from noisy tiles) along its crease,
-    when each side then fits its own plane."""
+    when each side then fits its own plane. With ``normals`` (H*W, 3), a patch that no quadric fits either
+    is cut into the two or three faces that fit planes (:func:`_split_faces`)."""
     groups = {k: v for k, v in _groups(labels).items() if v.size >= 2 * params.min_patch_pixels}
     if not groups:
         return labels
@@ -1135,12 +1208,15 @@ def _split_plane_pairs(labels: np.ndarray, st: _State, params: SegmentationParam
     bad = [j for j in range(len(labs)) if not _rms(zp[j]) <= params.merge_k]
     if not bad:
         return labels
-    Pq, _ = _quick_fits([subs[j] for j in bad], np.zeros(len(bad), bool), st)
+    Pq, zq = _quick_fits([subs[j] for j in bad], np.zeros(len(bad), bool), st)
     out = labels
     nxt = int(labels.max()) + 1
-    for q, j in zip(Pq, bad, strict=True):
+    for q, z, j in zip(Pq, zq, bad, strict=True):
         idx = groups[labs[j]]
         if not _is_plane_pair(q, st.X[subs[j]], _PLANE_PAIR_TOL):
+            if not _rms(z) <= params.merge_k and normals is not None:
+                # no quadric fits either: the pixels mixed at the crease spoil the plane pair
+                out, nxt = _split_faces(out, idx, st, normals, params, nxt)
             continue
         side = _plane_pair_sides(q, st.X[idx])
         halves = [idx[side == 0], idx[side == 1]]
@@ -1629,7 +1705,7 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
         crease = up(crease_d)
         st_full.hk = hk.ravel().astype(np.int64)
         labels = _refine_full(up(labels_d), valid, st_full, jump_h, jump_v, params, d)
-        split = _split_plane_pairs(labels, st_full, params)
+        split = _split_plane_pairs(labels, st_full, params, cur.normals.reshape(-1, 3))
         if split is not labels:  # a split-off side too small to stand alone goes to the face it belongs to
             labels = _absorb_fragments(split, st_full, jump_h, jump_v, params.min_region_pixels, params.absorb_k)
         if params.axis_split_pixels is not None:

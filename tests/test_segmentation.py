@@ -599,3 +599,52 @@ def test_a_pipe_and_its_reducer_are_cut_apart_along_the_axis(shape):
     wrong = np.mean(side != np.where(reducer, side[np.argmax(t)], side[np.argmin(t)]))
     assert side[np.argmax(t)] != side[np.argmin(t)]
     assert wrong < 0.06  # a slice is half a radius (5 cm): at most about one slice on the wrong side
+
+
+def test_a_far_box_corner_that_no_quadric_fits_is_cut_into_its_faces():
+    """Two faces of a far box (12 m, 3 mm noise) meeting at 90 deg, with pixels mixed at the crease: the
+    k-planes cut gives each face (one stray face pixel in twenty at most); a face with a parallel layer
+    behind it and a noisy pipe seen as a strip are not cut."""
+    from recognition.segmentation import _split_faces, _State
+
+    rng = np.random.default_rng(3)
+    n = 400
+    a, b = rng.uniform(0.0, 0.6, n), rng.uniform(-0.3, 0.3, n)
+    top = np.column_stack([a * 0.7, b, np.full(n, 12.0) - a * 0.7])  # two faces meeting at the crease x = 0
+    side = np.column_stack([-a * 0.7, b, np.full(n, 12.0) - a * 0.7])
+    x = np.concatenate([top, side])
+    u = x / np.linalg.norm(x, axis=1, keepdims=True)
+    x = x + u * rng.normal(0.0, 0.003, len(x))[:, None]
+    mixed = np.abs(x[:, 0]) < 0.02
+    x[mixed] += u[mixed] * rng.uniform(0.0, 0.05, mixed.sum())[:, None]  # mixed returns behind the crease
+    normals = np.where(np.arange(len(x))[:, None] < n, [-0.7071, 0.0, -0.7071], [0.7071, 0.0, -0.7071])
+    normals = normals + rng.normal(0.0, 0.2, normals.shape)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+
+    def split(points, rays, nrm):
+        st = _State(X=points, U=rays, S=np.full(len(points), 0.003), hk=np.ones(len(points), np.int64),
+                    params=SegmentationParams())
+        labels = np.zeros((1, len(points)), np.int32)
+        out, _ = _split_faces(labels, np.arange(len(points)), st, nrm, st.params, 1)
+        return out.ravel()
+
+    lab = split(x, u, normals)
+    assert set(lab) == {0, 1}
+    truth = np.arange(len(x)) >= n
+    agree = max(np.mean(lab == truth), np.mean(lab != truth))
+    assert agree >= 0.95
+    # one face and a parallel layer of a fifth of its pixels behind it: not two faces of a corner
+    one = np.concatenate([top, top[:100] + [0.0, 0.0, 0.2]])
+    u1 = one / np.linalg.norm(one, axis=1, keepdims=True)
+    n1 = np.tile([-0.7071, 0.0, -0.7071], (len(one), 1)) + rng.normal(0.0, 0.2, (len(one), 3))
+    assert set(split(one, u1, n1 / np.linalg.norm(n1, axis=1, keepdims=True))) == {0}
+    # a pipe of radius 5 cm under 1 cm noise, 3 m away: its facets would pass for planes, but are strips
+    t, phi = rng.uniform(0, 1.0, 800), rng.uniform(-1.3, 1.3, 800)
+    pipe = np.column_stack([t, 0.05 * np.sin(phi), 3.0 - 0.05 * np.cos(phi)])
+    up = pipe / np.linalg.norm(pipe, axis=1, keepdims=True)
+    pipe += up * rng.normal(0.0, 0.01, 800)[:, None]
+    npipe = np.column_stack([np.zeros(800), np.sin(phi), -np.cos(phi)])
+    st_sigma = np.full(800, 0.01)
+    st = _State(X=pipe, U=up, S=st_sigma, hk=np.ones(800, np.int64), params=SegmentationParams())
+    out, _ = _split_faces(np.zeros((1, 800), np.int32), np.arange(800), st, npipe, st.params, 1)
+    assert set(out.ravel()) == {0}
