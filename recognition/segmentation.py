@@ -794,14 +794,12 @@ def _tiles_fit(idx: np.ndarray, inv: np.ndarray, st: _State, params: Segmentatio
     """True when most tiles of a badly fitted seed are fitted well (median tile RMS within ``merge_k``)."""
     order = np.argsort(inv, kind="stable")
     cuts = np.flatnonzero(np.diff(inv[order])) + 1
-    rms = []
-    for part in np.split(idx[order], cuts):
-        if part.size < 10:
-            continue
-        counts = np.bincount(st.hk[part], minlength=5)
-        _, z = _quick_fit(st.X[part], st.U[part], st.S[part], _is_planar_counts(counts), want_params=False)
-        rms.append(_rms(z))
-    return bool(rms) and float(np.median(rms)) <= params.merge_k
+    parts = [part for part in np.split(idx[order], cuts) if part.size >= 10]
+    if not parts:
+        return False
+    planar = np.array([_is_planar_counts(np.bincount(st.hk[part], minlength=5)) for part in parts])
+    _, zs = _quick_fits(parts, planar, st)
+    return float(np.median([_rms(z) for z in zs])) <= params.merge_k
 
 
 def _tile_small_leftovers(comp: np.ndarray, st: _State, params: SegmentationParams) -> np.ndarray:
@@ -1371,13 +1369,15 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
     subs = {k: _subsample(v, nmax) for k, v in members.items()}
     counts = {k: np.bincount(st.hk[v], minlength=5) for k, v in members.items()}
 
-    def flat(k: int) -> bool:
-        _, z = _quick_fit(st.X[subs[k]], st.U[subs[k]], st.S[subs[k]], True, want_params=False)
-        return _rms(z) <= thr
+    flats: dict[int, bool] = {}  # whether a plane fits the patch, computed in batches when needed
 
-    keys = list(members)
-    _, z_plane = _quick_fits([subs[k] for k in keys], np.ones(len(keys), bool), st)
-    flats = {k: _rms(z) <= thr for k, z in zip(keys, z_plane, strict=True)}
+    def update_flats(keys) -> None:
+        keys = [k for k in keys if k not in flats]
+        if keys:
+            _, z_plane = _quick_fits([subs[k] for k in keys], np.ones(len(keys), bool), st)
+            flats.update({k: _rms(z) <= thr for k, z in zip(keys, z_plane, strict=True)})
+
+    update_flats(list(members))
     version = dict.fromkeys(members, 0)
     nbrs: dict[int, set[int]] = {k: set() for k in members}
     for a, b in _adjacency(labels, jump_h, jump_v):
@@ -1388,6 +1388,7 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
         """RMS residual of the union fit of each pair (inf when the smaller part does not fit it), all fitted
         in one batch."""
         out = [float("inf")] * len(pairs)
+        update_flats(sorted({k for pair in pairs for k in pair}))
         todo, unions, planar, n_large = [], [], [], []
         for i, (a, b) in enumerate(pairs):
             if st.params.class_min_pixels and _class_boundary(counts[a], counts[b], st.params.class_min_pixels):
@@ -1443,7 +1444,7 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
         subs.pop(b)
         counts[a] = counts[a] + counts.pop(b)
         flats.pop(b)
-        flats[a] = flat(a)
+        flats.pop(a)
         version[a] += 1
         parent[parent == b] = a
         old = nbrs[a]
@@ -1532,15 +1533,16 @@ def _attach_isolated(labels: np.ndarray, st: _State, jump_h: np.ndarray, jump_v:
     groups = _groups(labels)
     small = {k for k, v in groups.items() if v.size < st.params.min_patch_pixels}
     remap = np.arange(int(labels.max()) + 1)
-    fits: dict[int, np.ndarray] = {}
-    for p in sorted(small - set(linked.tolist())):
-        cands = [int(q) for q in across[across[:, 0] == p, 1] if groups[int(q)].size > groups[p].size]
+    isolated = sorted(small - set(linked.tolist()))
+    cands = {p: [int(q) for q in across[across[:, 0] == p, 1] if groups[int(q)].size > groups[p].size]
+             for p in isolated}
+    nb = sorted({q for c in cands.values() for q in c})  # their fits, in one batch
+    P, _ = _quick_fits([_subsample(groups[q], st.params.max_fit_points) for q in nb],
+                       np.array([_is_planar_counts(np.bincount(st.hk[groups[q]], minlength=5)) for q in nb]), st)
+    fits = dict(zip(nb, P, strict=True))
+    for p in isolated:
         best, best_rms = -1, st.params.grow_k
-        for q in cands:
-            if q not in fits:
-                sub = _subsample(groups[q], st.params.max_fit_points)
-                planar = _is_planar_counts(np.bincount(st.hk[groups[q]], minlength=5))
-                fits[q], _ = _quick_fit(st.X[sub], st.U[sub], st.S[sub], planar)
+        for q in cands[p]:
             idx = groups[p]
             _, _, z = ray_residuals(fits[q], st.X[idx], st.S[idx])
             rms = _rms(np.where(np.isfinite(z), z, np.inf))
@@ -1593,7 +1595,11 @@ def _absorb_fragments(labels: np.ndarray, st: _State, jump_h: np.ndarray, jump_v
         pairs, blen = pairs[sel], blen[sel]
         if pairs.size == 0:
             return labels
-        fits: dict[int, np.ndarray] = {}
+        # the fits of every neighbour a fragment may join, in one batch
+        nb = [int(q) for q in np.unique(pairs[:, 1])]
+        P, _ = _quick_fits([_subsample(groups[q], st.params.max_fit_points) for q in nb],
+                           np.array([_is_planar_counts(np.bincount(st.hk[groups[q]], minlength=5)) for q in nb]), st)
+        fits = dict(zip(nb, P, strict=True))
         remap = np.arange(sizes.size)
         order = np.lexsort((-blen, pairs[:, 0]))
         pairs, blen = pairs[order], blen[order]
@@ -1606,10 +1612,6 @@ def _absorb_fragments(labels: np.ndarray, st: _State, jump_h: np.ndarray, jump_v
                 q = int(q)
                 if remap[q] != q:
                     continue
-                if q not in fits:
-                    sub = _subsample(groups[q], st.params.max_fit_points)
-                    planar = _is_planar_counts(np.bincount(st.hk[groups[q]], minlength=5))
-                    fits[q], _ = _quick_fit(st.X[sub], st.U[sub], st.S[sub], planar)
                 _, _, z = ray_residuals(fits[q], st.X[idx], st.S[idx])
                 if _rms(np.where(np.isfinite(z), z, np.inf)) <= max_rms:
                     remap[p] = q
