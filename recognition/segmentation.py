@@ -54,8 +54,12 @@ What the simulated suites (mixed pixels, outliers, grazing dropouts, incidence-d
    into tiles that merging reassembles; so are unseeded leftover pieces (a thin pipe run). The quick fits
    behind these tests are Taubin fits: the plain algebraic quadric fit is biased on small arcs.
    Two patches that each fit a plane merge only as one plane, never as the plane pair a quadric fits.
-   After the full-resolution refinement, a patch that no plane fits but a plane pair does (two faces of a
-   far, small box reassembled from noisy tiles) is cut along its crease (:func:`_split_plane_pairs`).
+   After the full-resolution refinement, adjacent patches are merged once more at full resolution (pieces of
+   one pipe the coarse grid kept apart now touch); then a patch that no plane fits but a plane pair does (two
+   faces of a far, small box reassembled from noisy tiles) is cut along its crease
+   (:func:`_split_plane_pairs`), one that no quadric fits either into the faces k-planes finds
+   (:func:`_split_faces`), and a large curved patch along its axis where its radius profile bends (a pipe
+   merged with its reducer under strong noise, :func:`_split_along_axis`).
 9. **Hoover-literal hygiene**: fragments under ``min_region_pixels`` join a bordering patch whose surface
    fits them; pixels with at most two 4-neighbours in their own patch are left unlabelled (mixed pixels
    and one-pixel slivers of other surfaces at corners: the metric counts a patch that wholly covers a
@@ -1707,6 +1711,7 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
         crease = up(crease_d)
         st_full.hk = hk.ravel().astype(np.int64)
         labels = _refine_full(up(labels_d), valid, st_full, jump_h, jump_v, params, d)
+        labels = _merge(labels, st_full, jump_h, jump_v)  # (before the cuts below, which it would undo)
         split = _split_plane_pairs(labels, st_full, params, cur.normals.reshape(-1, 3))
         if split is not labels:  # a split-off side too small to stand alone goes to the face it belongs to
             labels = _absorb_fragments(split, st_full, jump_h, jump_v, params.min_region_pixels, params.absorb_k)
