@@ -145,7 +145,9 @@ def test_mug_table_is_one_plan_patch(mug):
     assert _angle_deg(table.classification.primitive.normal, PCL_PLANE[:3]) < 3.0
 
 
-@pytest.mark.xfail(strict=False, reason=SEGMENTATION_XFAIL)
+@pytest.mark.xfail(strict=False, reason=(
+    "the mug body's patches are labelled OTH: on this stereo scan's spatially correlated residuals a general "
+    "quadric beats the cylinder (fitted to its largest patches within 10 % of PCL's radius) in the criterion"))
 def test_mug_body_is_cyl_with_pcl_radius(mug):
     _, desc = mug
     body = []
