@@ -16,8 +16,10 @@ Given the scene description, the scan, the a priori model and the estimated pose
    be seen (occluded, out of view) is ``unobserved``, never ``missing``.
 4. **New**: scene patches made mostly of unexplained points and claimed by no model feature.
 5. **Objects** (the semantic layer): an object's label comes from counting its features' labels; objects
-   move as a whole (a feature of a moved object whose place is revealed moved with it), and an object with
-   an altered feature is altered as a whole (its elbows and reducers sit a radius change away).
+   move as a whole (a feature of a moved object whose place is revealed moved with it, and one not found at
+   its old place - or not visible from there, a face turned into view - is looked for at the new place among
+   the unexplained patches), and an object with an altered feature is altered as a whole (its elbows and
+   reducers sit a radius change away).
 """
 
 from __future__ import annotations
