@@ -88,11 +88,11 @@ class MatchParams:
         stops with the best hypotheses found so far ...
     max_wall_s : ... and a wall-clock cap, whatever the load.
     size_weight : items are taken in order of ``log(candidates + 1) - size_weight * log(pixels)`` (fewest
-        candidates first, small patches - the likeliest spurious - later); items without candidates are
-        wildcards and seed nothing. 0.5 put a factory view's large walls (9 candidates each) before its
-        one-candidate pipes, whose pair fixes the pose at once, and spent the node budget on plane triples
-        (a wall's far face won by 0.33 m); 0.25 keeps mock-up and factory constrained trials at 100 % and
-        leaves the Kinect-like ones unchanged.
+        candidates first, small patches - the likeliest spurious - later; items without candidates are
+        dropped before the search: they can only be wildcards). 0.5 put a factory view's large walls (9
+        candidates each) before its one-candidate pipes, whose pair fixes the pose at once, and spent the
+        node budget on plane triples (a wall's far face won by 0.33 m); 0.25 keeps mock-up and factory
+        constrained trials at 100 % and leaves the Kinect-like ones unchanged.
     max_seed_size : at most this many pairs in a seed (the pairs that fix the pose before the others are
         tested against it).
     stop_fraction : the search stops once a hypothesis explains this fraction of the items' summed weight
@@ -722,10 +722,9 @@ class _Search:
         self.dedupe_dist = 0.02 * length_m
         # fewest candidates first, tempered by size: a small patch is the likeliest to be spurious or
         # misclassified, and a seed that starts with it wastes the budget
-        # (an item without candidates can only be a wildcard: it seeds nothing)
-        self.order = sorted((i for i in range(len(items)) if len(cands[i])),
-                            key=lambda i: (math.log(len(cands[i]) + 1.0)
-                                           - params.size_weight * math.log(items[i].n_pixels), -items[i].n_pixels))
+        self.order = sorted(range(len(items)), key=lambda i: (math.log(len(cands[i]) + 1.0)
+                                                              - params.size_weight * math.log(items[i].n_pixels),
+                                                              -items[i].n_pixels))
         self.flat = _FlatPairs(items, el, cands)
         self.stop_reason = ""
         self.t0 = time.perf_counter()
