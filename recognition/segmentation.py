@@ -58,7 +58,7 @@ What the simulated suites (mixed pixels, outliers, grazing dropouts, incidence-d
    one pipe the coarse grid kept apart now touch); then a patch that no plane fits but a plane pair does (two
    faces of a far, small box reassembled from noisy tiles) is cut along its crease
    (:func:`_split_plane_pairs`), one that no quadric fits either into the faces k-planes finds
-   (:func:`_split_faces`), and a large curved patch along its axis where its radius profile bends (a pipe
+   (:func:`_faces`), and a large curved patch along its axis where its radius profile bends (a pipe
    merged with its reducer under strong noise, :func:`_split_along_axis`).
 9. **Hoover-literal hygiene**: fragments under ``min_region_pixels`` join a bordering patch whose surface
    fits them; pixels with at most two 4-neighbours in their own patch are left unlabelled (mixed pixels
@@ -1028,6 +1028,14 @@ def _quick_fits(idx_list: list[np.ndarray], planar: np.ndarray, st: _State):
     return P, zs
 
 
+def _quick_fits_of(groups: dict[int, np.ndarray], keys: list[int], st: _State) -> dict[int, np.ndarray]:
+    """The quick fit (plane or quadric by the patch's H-K classes, on a subsample) of each patch ``keys`` of
+    ``groups``, in one batch: ``{label: parameters (10,)}``."""
+    P, _ = _quick_fits([_subsample(groups[k], st.params.max_fit_points) for k in keys],
+                       np.array([_is_planar_counts(np.bincount(st.hk[groups[k]], minlength=5)) for k in keys]), st)
+    return dict(zip(keys, P, strict=True))
+
+
 def _fit_groups(groups: dict[int, np.ndarray], st: _State, n_labels: int, trim: float | None = None) -> np.ndarray:
     """Plane / quadric parameters (n_labels, 10) of each group (on a subsample of its pixels).
 
@@ -1168,15 +1176,14 @@ def _trimmed_rms(z: np.ndarray, keep: float = 0.9) -> float:
     return _rms(np.sort(z)[: max(int(keep * z.size), 1)])
 
 
-_FACE_COS = np.cos(np.radians(30.0))  # faces cut apart by _split_faces meet at 30 deg or more
+_FACE_COS = np.cos(np.radians(30.0))  # faces cut apart by _faces meet at 30 deg or more
 
 
-def _split_faces(out: np.ndarray, idx: np.ndarray, st: _State, normals: np.ndarray, params: SegmentationParams,
-                 nxt: int) -> tuple[np.ndarray, int]:
-    """Cut the patch of pixels ``idx`` into the two or three faces (:func:`_k_planes`) that each fit a plane
-    within ``1.5 merge_k`` (but for a tenth of their pixels, mixed at the creases: a far box's faces are a
-    few pixels wide), are broad against the noise (:func:`_broad`) and meet at 30 deg or more (not one face
-    with a few stray pixels); ``(labels, next label)``."""
+def _faces(idx: np.ndarray, st: _State, normals: np.ndarray, params: SegmentationParams) -> list[np.ndarray]:
+    """The two or three faces (:func:`_k_planes`) of the patch of pixels ``idx`` that each fit a plane within
+    ``1.5 merge_k`` (but for a tenth of their pixels, mixed at the creases: a far box's faces are a few pixels
+    wide), are broad against the noise (:func:`_broad`) and meet at 30 deg or more (not one face with a few
+    stray pixels); [] when there are none."""
     for k in (2, 3):
         part = _k_planes(st.X[idx], st.U[idx], st.S[idx], normals[idx], k)
         if part is None:
@@ -1187,12 +1194,8 @@ def _split_faces(out: np.ndarray, idx: np.ndarray, st: _State, normals: np.ndarr
         Pf, zf = _quick_fits([_subsample(f, params.max_fit_points) for f in faces], np.ones(k, bool), st)
         cos = np.abs(Pf[:, 6:9] @ Pf[:, 6:9].T)[np.triu_indices(k, 1)]
         if np.all(cos <= _FACE_COS) and all(_trimmed_rms(z) <= 1.5 * params.merge_k for z in zf):
-            out = out.copy()
-            for f in faces[1:]:
-                out.reshape(-1)[f] = nxt
-                nxt += 1
-            break
-    return out, nxt
+            return faces
+    return []
 
 
 def _split_plane_pairs(labels: np.ndarray, st: _State, params: SegmentationParams,
@@ -1200,7 +1203,7 @@ def _split_plane_pairs(labels: np.ndarray, st: _State, params: SegmentationParam
     """Cut each patch that no plane fits (RMS beyond ``merge_k``) but a plane pair does (two faces of a far,
     small box whose crease the curvature could not see, reassembled from noisy tiles) along its crease,
     when each side then fits its own plane. With ``normals`` (H*W, 3), a patch that no quadric fits either
-    is cut into the two or three faces that fit planes (:func:`_split_faces`)."""
+    is cut into the two or three faces that fit planes (:func:`_faces`)."""
     groups = {k: v for k, v in _groups(labels).items() if v.size >= 2 * params.min_patch_pixels}
     if not groups:
         return labels
@@ -1215,23 +1218,24 @@ def _split_plane_pairs(labels: np.ndarray, st: _State, params: SegmentationParam
     nxt = int(labels.max()) + 1
     for q, z, j in zip(Pq, zq, bad, strict=True):
         idx = groups[labs[j]]
-        if not _is_plane_pair(q, st.X[subs[j]], _PLANE_PAIR_TOL):
-            if not _rms(z) <= params.merge_k and normals is not None:
-                # no quadric fits either: the pixels mixed at the crease spoil the plane pair
-                out, nxt = _split_faces(out, idx, st, normals, params, nxt)
+        if _is_plane_pair(q, st.X[subs[j]], _PLANE_PAIR_TOL):
+            side = _plane_pair_sides(q, st.X[idx])
+            pieces = [idx[side == 0], idx[side == 1]]
+            if min(h.size for h in pieces) < params.min_patch_pixels:
+                continue
+            _, zh = _quick_fits([_subsample(h, params.max_fit_points) for h in pieces], np.ones(2, bool), st)
+            if not all(_rms(z) <= params.merge_k for z in zh):
+                continue
+        elif not _rms(z) <= params.merge_k and normals is not None:
+            # no quadric fits either: the pixels mixed at the crease spoil the plane pair
+            pieces = _faces(idx, st, normals, params)
+        else:
             continue
-        side = _plane_pair_sides(q, st.X[idx])
-        halves = [idx[side == 0], idx[side == 1]]
-        if min(h.size for h in halves) < params.min_patch_pixels:
-            continue
-        hs = [_subsample(h, params.max_fit_points) for h in halves]
-        _, zh = _quick_fits(hs, np.ones(2, bool), st)
-        if not all(_rms(z) <= params.merge_k for z in zh):
-            continue
-        if out is labels:
+        if out is labels and pieces:
             out = labels.copy()
-        out.reshape(-1)[halves[1]] = nxt
-        nxt += 1
+        for piece in pieces[1:]:
+            out.reshape(-1)[piece] = nxt
+            nxt += 1
     return out
 
 
@@ -1540,10 +1544,7 @@ def _attach_isolated(labels: np.ndarray, st: _State, jump_h: np.ndarray, jump_v:
     isolated = sorted(small - set(linked.tolist()))
     cands = {p: [int(q) for q in across[across[:, 0] == p, 1] if groups[int(q)].size > groups[p].size]
              for p in isolated}
-    nb = sorted({q for c in cands.values() for q in c})  # their fits, in one batch
-    P, _ = _quick_fits([_subsample(groups[q], st.params.max_fit_points) for q in nb],
-                       np.array([_is_planar_counts(np.bincount(st.hk[groups[q]], minlength=5)) for q in nb]), st)
-    fits = dict(zip(nb, P, strict=True))
+    fits = _quick_fits_of(groups, sorted({q for c in cands.values() for q in c}), st)
     for p in isolated:
         best, best_rms = -1, st.params.grow_k
         for q in cands[p]:
@@ -1599,11 +1600,8 @@ def _absorb_fragments(labels: np.ndarray, st: _State, jump_h: np.ndarray, jump_v
         pairs, blen = pairs[sel], blen[sel]
         if pairs.size == 0:
             return labels
-        # the fits of every neighbour a fragment may join, in one batch
-        nb = [int(q) for q in np.unique(pairs[:, 1])]
-        P, _ = _quick_fits([_subsample(groups[q], st.params.max_fit_points) for q in nb],
-                           np.array([_is_planar_counts(np.bincount(st.hk[groups[q]], minlength=5)) for q in nb]), st)
-        fits = dict(zip(nb, P, strict=True))
+        # the fits of every neighbour a fragment may join
+        fits = _quick_fits_of(groups, [int(q) for q in np.unique(pairs[:, 1])], st)
         remap = np.arange(sizes.size)
         order = np.lexsort((-blen, pairs[:, 0]))
         pairs, blen = pairs[order], blen[order]

@@ -605,7 +605,7 @@ def test_a_far_box_corner_that_no_quadric_fits_is_cut_into_its_faces():
     """Two faces of a far box (12 m, 3 mm noise) meeting at 90 deg, with pixels mixed at the crease: the
     k-planes cut gives each face (one stray face pixel in twenty at most); a face with a parallel layer
     behind it and a noisy pipe seen as a strip are not cut."""
-    from recognition.segmentation import _split_faces, _State
+    from recognition.segmentation import _faces, _State
 
     rng = np.random.default_rng(3)
     n = 400
@@ -621,12 +621,14 @@ def test_a_far_box_corner_that_no_quadric_fits_is_cut_into_its_faces():
     normals = normals + rng.normal(0.0, 0.2, normals.shape)
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
 
-    def split(points, rays, nrm):
-        st = _State(X=points, U=rays, S=np.full(len(points), 0.003), hk=np.ones(len(points), np.int64),
+    def split(points, rays, nrm, sigma=0.003):
+        """Face index per point (0 everywhere when the patch is not cut)."""
+        st = _State(X=points, U=rays, S=np.full(len(points), sigma), hk=np.ones(len(points), np.int64),
                     params=SegmentationParams())
-        labels = np.zeros((1, len(points)), np.int32)
-        out, _ = _split_faces(labels, np.arange(len(points)), st, nrm, st.params, 1)
-        return out.ravel()
+        lab = np.zeros(len(points), np.int32)
+        for j, face in enumerate(_faces(np.arange(len(points)), st, nrm, st.params)):
+            lab[face] = j
+        return lab
 
     lab = split(x, u, normals)
     assert set(lab) == {0, 1}
@@ -644,7 +646,4 @@ def test_a_far_box_corner_that_no_quadric_fits_is_cut_into_its_faces():
     up = pipe / np.linalg.norm(pipe, axis=1, keepdims=True)
     pipe += up * rng.normal(0.0, 0.01, 800)[:, None]
     npipe = np.column_stack([np.zeros(800), np.sin(phi), -np.cos(phi)])
-    st_sigma = np.full(800, 0.01)
-    st = _State(X=pipe, U=up, S=st_sigma, hk=np.ones(800, np.int64), params=SegmentationParams())
-    out, _ = _split_faces(np.zeros((1, 800), np.int32), np.arange(800), st, npipe, st.params, 1)
-    assert set(out.ravel()) == {0}
+    assert set(split(pipe, up, npipe, sigma=0.01)) == {0}

@@ -170,11 +170,13 @@ def change_table(located, changes, model: SceneModel, title: str = "") -> str:
     lines += [f"Pose: sensor at ({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) m, confidence {located.confidence:.2f}, "
               f"{located.free_dof} degrees of freedom unconstrained.", "",
               "| object | label | features (label) |", "|:---|:---|:---|"]
+    def verdict(fid: str) -> str:
+        r = changes.features[fid]
+        moved = f", {1e3 * r.displacement_m:.0f} mm" if r.displacement_m is not None else ""
+        return f"{fid} ({r.label}{moved})"
+
     for obj in model.objects:
-        feats = ", ".join(f"{f.id} ({changes.features[f.id].label}"
-                          + (f", {1e3 * changes.features[f.id].displacement_m:.0f} mm"
-                             if changes.features[f.id].displacement_m is not None else "") + ")"
-                          for f in obj.features if changes.features[f.id].label != "unobserved")
+        feats = ", ".join(verdict(f.id) for f in obj.features if changes.features[f.id].label != "unobserved")
         lines.append(f"| {obj.id} | {changes.objects[obj.id]} | {feats or '(none observed)'} |")
     lines += ["", f"New regions (patch ids): {', '.join(map(str, changes.new_patches)) or 'none'}", ""]
     return "\n".join(lines)
