@@ -11,7 +11,7 @@ from harness.cli import main
 from scenes import ConfigError, SceneModel
 from scenes.features import Cone, Cylinder, Sphere, Torus
 from scenes.generator import GeneratorConfig, generate_factory, mockup_model
-from scenes.geometry import unit
+from scenes.geometry import perpendicular, unit
 from scenes.model import Object
 
 finite = st.floats(-50, 50, allow_nan=False, allow_infinity=False)
@@ -41,9 +41,9 @@ def scene_models(draw):
                                   start=start, end=start + draw(positive)))
             else:
                 axis = draw(direction)
-                start = unit(np.cross(axis, draw(direction)))
-                if np.linalg.norm(start) < 0.5:
-                    start = unit(np.cross(axis, [1.0, 0.3, 0.1]))
+                across = np.cross(axis, draw(direction))
+                # a nearly parallel draw leaves a cross product too small to normalise exactly
+                start = unit(across) if np.linalg.norm(across) >= 0.5 else perpendicular(axis)
                 major = draw(positive)
                 feats.append(Torus(fid, centre=centre, axis=axis, major_radius=major,
                                    minor_radius=major * draw(st.floats(0.01, 0.9)), start=start,
