@@ -27,6 +27,7 @@ YAML layout (schema ``sensor/1``; lengths in metres, angles in degrees with a ``
       enabled: true
       range: {model: ray, s0_m: 1.0e-4, s2_per_m: 1.0e-4, max_incidence_deg: 80}
       #      {model: kinect_axial, s0_m: 0.0012, s2_per_m: 0.0019, z0_m: 0.4, incidence_coeff_m: 1.0e-4}
+      #      matching_window_px: 7 (either model) correlates the errors over a 7 x 7 matching window
       quantisation: {mode: range, step_m: 5.0e-5}     # or {mode: inverse_depth, step_per_m: 2.85e-3}
       grazing: {start_deg: 70, end_deg: 85}
       footprint: {rays: 4, radius_px: 0.5, min_return_fraction: 0.5, mixed_threshold_sigma: 3}
@@ -231,6 +232,7 @@ def _noise(f: Fields) -> NoiseModel:
         kw["s0_m"] = r.number("s0_m", 0.0, nonnegative=True)
         kw["s2_per_m"] = r.number("s2_per_m", 0.0, nonnegative=True)
         kw["max_incidence"] = math.radians(r.number("max_incidence_deg", 80.0, min=0.0))
+        kw["matching_window_px"] = r.integer("matching_window_px", 1, min=1, max=64)
         if kw["max_incidence"] >= math.pi / 2:
             raise r.error("max_incidence_deg", f"must be < 90, got {math.degrees(kw['max_incidence']):g}")
         if kw["range_model"] == "kinect_axial":

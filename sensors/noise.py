@@ -14,6 +14,9 @@ Terms, each switched off by its neutral value (``NoiseModel.without(term)`` does
     ``sigma_z(z, i) = s0 + s2 (z - z0)^2 + b / sqrt(z) * i^2 / (pi/2 - i)^2`` with ``i`` clipped at
     ``i_max``, converted to the ray (DESIGN 10.2): a depth error ``dz`` along a fixed ray of direction
     ``d`` is a range error ``dz / d_z``, so ``sigma_r = sigma_z / d_z``.
+    With ``matching_window_px`` ``w > 1`` the errors are spatially correlated as a stereo or structured-light
+    matcher makes them: white noise averaged over a ``w x w`` window and rescaled to unit variance (the
+    per-pixel sigma is unchanged), so ``w²`` pixels carry one independent error (:attr:`NoiseModel.correlation_area`).
 ``quantisation``
     Rounding of the measured range to a step in metres (``quantisation_mode="range"``), or of inverse
     depth to a step in 1/m (``"inverse_depth"``: disparity-based sensors, depth step ~ ``step z^2``).
@@ -55,6 +58,7 @@ class NoiseModel:
     z0_m : ``kinect_axial`` only: depth of the quadratic's minimum (metres).
     incidence_coeff_m : ``kinect_axial`` only: ``b`` of the incidence term (metres * sqrt(metres)).
     max_incidence : incidence angle (radians) beyond which sigma stops growing.
+    matching_window_px : side of the window over which the range errors are correlated (1 = independent).
     quantisation_step : 0 = off; metres (``range`` mode) or 1/m (``inverse_depth`` mode).
     quantisation_mode : ``"range"`` or ``"inverse_depth"``.
     grazing_start, grazing_end : radians, ``grazing_start <= grazing_end``; ``pi/2`` = off.
@@ -74,6 +78,7 @@ class NoiseModel:
     z0_m: float = 0.0
     incidence_coeff_m: float = 0.0
     max_incidence: float = math.radians(80.0)
+    matching_window_px: int = 1
     quantisation_step: float = 0.0
     quantisation_mode: str = "range"
     grazing_start: float = math.pi / 2
@@ -111,6 +116,10 @@ class NoiseModel:
                 or self.footprint_rays < 1:
             raise ValueError(f"footprint_rays must be an integer >= 1, got {self.footprint_rays!r}")
         object.__setattr__(self, "footprint_rays", int(self.footprint_rays))
+        if isinstance(self.matching_window_px, bool) or int(self.matching_window_px) != self.matching_window_px \
+                or self.matching_window_px < 1:
+            raise ValueError(f"matching_window_px must be an integer >= 1, got {self.matching_window_px!r}")
+        object.__setattr__(self, "matching_window_px", int(self.matching_window_px))
         if not 0.0 < self.min_return_fraction <= 1.0:
             raise ValueError(f"min_return_fraction must be in (0, 1], got {self.min_return_fraction}")
         if self.outlier_rate > 1:
@@ -125,6 +134,11 @@ class NoiseModel:
     @property
     def has_range_noise(self) -> bool:
         return self.enabled and (self.s0_m > 0 or self.s2_per_m > 0 or self.incidence_coeff_m > 0)
+
+    @property
+    def correlation_area(self) -> float:
+        """Pixels per independent range error: ``matching_window_px²`` (1 for independent errors)."""
+        return float(self.matching_window_px**2)
 
     @property
     def has_quantisation(self) -> bool:

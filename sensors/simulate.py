@@ -24,6 +24,7 @@ from collections.abc import Iterable
 
 import mujoco
 import numpy as np
+import scipy.ndimage as ndi
 
 from scenes.features import Feature
 from scenes.geometry import check_transform
@@ -196,7 +197,13 @@ class Simulator:
             mixed = np.abs(meas - r) > np.maximum(noise.mixed_threshold_sigma * sigma, 1e-4 * r)
             fl[mixed & ~weak] |= FLAG_MIXED
         if noise.has_range_noise:
-            meas += sigma * np.random.default_rng(seeds[0]).standard_normal(len(seen))
+            g = np.random.default_rng(seeds[0])
+            if noise.matching_window_px > 1:  # correlated over the matching window, unit variance per pixel
+                w = noise.matching_window_px
+                field = ndi.uniform_filter(g.standard_normal((H, W)), size=w, mode="reflect") * w
+                meas += sigma * field.ravel()[seen]
+            else:
+                meas += sigma * g.standard_normal(len(seen))
         meas = noise.quantise(meas, ray_z)
         if noise.has_outliers:
             g = np.random.default_rng(seeds[1])

@@ -43,7 +43,7 @@ def test_laser_grid():
     np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0)
 
 
-@pytest.mark.parametrize("name", ["mockup_laser", "factory_scanner", "kinect_like"])
+@pytest.mark.parametrize("name", ["mockup_laser", "factory_scanner", "kinect_like", "stereo_like"])
 def test_presets_load(name):
     cfg = load_sensor(name)
     assert cfg.name == name and cfg.noise.enabled and cfg.T_world_sensor is not None
@@ -60,6 +60,10 @@ def test_preset_figures():
     assert (k.model.min_range, k.model.max_range) == (0.5, 4.5)
     assert k.noise.sigma(2.0, 1.0, 1.0) == pytest.approx(0.0012 + 0.0019 * 1.6**2)
     assert k.noise.sigma(2.0, 1.0, 0.8) == pytest.approx((0.0012 + 0.0019 * 1.2**2) / 0.8)  # along the ray
+    assert k.noise.correlation_area == 1.0  # the simulated Kinect's errors are independent
+    s = load_sensor("stereo_like").noise
+    assert s.matching_window_px == 7 and s.correlation_area == 49.0 and s.footprint == 1
+    assert s.sigma(0.8) == pytest.approx(5e-4 + 1.6e-3 * 0.8**2)
 
 
 @pytest.mark.parametrize("text, message", [
@@ -71,6 +75,7 @@ def test_preset_figures():
     (PINHOLE + "noise: {specular: {chrome: 0.5}}\n", "noise.specular.chrome: unknown material"),
     (PINHOLE + "noise: {footprint: {rays: 0}}\n", "noise.footprint.rays: must be >= 1"),
     (PINHOLE + "bogus: 1\n", "unknown key"),
+    (PINHOLE + "noise: {range: {matching_window_px: 0}}\n", "noise.range.matching_window_px: must be >= 1"),
     ("schema: sensor/1\nlaser: {n_azimuth: 0, n_elevation: 4, azimuth_deg: [-10, 10], elevation_deg: [-5, 5], "
      "max_range: 3}\n", "laser.n_azimuth: must be >= 1, got 0"),
     ("schema: sensor/1\nlaser: {n_azimuth: 4, n_elevation: 4, azimuth_deg: [10, -10], elevation_deg: [-5, 5], "

@@ -221,3 +221,30 @@ def test_sigma_function_properties():
         n.without("bogus")
     with pytest.raises(ValueError, match="footprint_rays"):
         NoiseModel(footprint_rays=0)
+
+
+@pytest.mark.parametrize("window", [1, 3, 7])
+def test_matching_window_correlates_errors_and_keeps_sigma(wall_sim, window):
+    """Errors averaged over a w x w matching window: per-pixel sigma unchanged, neighbour correlation of a
+    box average (w - 1) / w, uncorrelated beyond the window."""
+    noise = replace(load_sensor("stereo_like").noise.without("grazing", "specular", "outliers"),
+                    matching_window_px=window)
+    assert noise.correlation_area == window**2
+    camera = PinholeCamera.from_fov(400, 400, 4.0, min_range=0.1, max_range=30.0)
+    T = wall_pose(1.0, 0.0)
+    scan, truth = wall_sim.simulate(SensorConfig(camera, noise), T, np.random.default_rng(7))
+    r, cos_i, ray_z = plane_geometry(camera, T)
+    z = (scan.range - r) / noise.sigma(r, cos_i, ray_z)  # unit normal per pixel
+    inner = z[window:-window, window:-window]  # away from the reflected image border
+    # (sampling spreads: about window / 400 for the correlations, 3 sigma allowed)
+    assert np.std(inner) == pytest.approx(1.0, rel=0.05)
+    lag1 = np.mean(inner[:, 1:] * inner[:, :-1]) / np.var(inner)
+    assert lag1 == pytest.approx((window - 1) / window, abs=0.06)
+    beyond = np.mean(inner[:, window:] * inner[:, :-window]) / np.var(inner)
+    assert abs(beyond) < 0.06
+
+
+def test_matching_window_must_be_a_positive_integer():
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(ValueError, match="matching_window_px"):
+            NoiseModel(matching_window_px=bad)
