@@ -448,8 +448,16 @@ def _classify_paper(pts, sig, nrm, params: PaperParams, planar_hint: bool) -> Pa
 # select
 
 
-def _criterion(chi2: float, k: int, n: int, kind: str) -> float:
-    return chi2 + (k * np.log(n) if kind == "bic" else 2.0 * k)
+def _price(n: int, kind: str, rho: float = 1.0) -> float:
+    """The criterion's price of one parameter: ``ln n_eff`` (BIC, ``n_eff = n / rho`` independent samples,
+    at least 8: never below AIC's 2) or 2 (AIC)."""
+    return float(np.log(max(n / rho, 8.0))) if kind == "bic" else 2.0
+
+
+def _criterion(chi2: float, k: int, n: int, kind: str, rho: float = 1.0) -> float:
+    """Information criterion of a fit of ``k`` parameters to ``n`` points whose errors are correlated in
+    groups of ``rho`` (:func:`_classify_select`): ``chi2 / rho + k price``."""
+    return chi2 / rho + k * _price(n, kind, rho)
 
 
 def _single_sheet(q, pts: np.ndarray, plane: prim.PlaneFit, min_fraction: float = 0.9) -> bool:
@@ -539,7 +547,7 @@ def _gross_outliers(pts: np.ndarray, sig: np.ndarray, k: float) -> np.ndarray:
     return dev > k * np.maximum(spread, sig)
 
 
-def _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params: SelectParams, n: int):
+def _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params: SelectParams, n: int, rho: float = 1.0):
     """A patch none of whose models fits all points: does one primitive fit most of them?
 
     Segmented patches may include a neighbouring surface's pixels at their borders, or a piece of another
@@ -561,7 +569,8 @@ def _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params: SelectParams, 
             continue
         # among those that pass, the lowest criterion on the trimmed chi² of all points (a more flexible
         # primitive always keeps at least as many inliers)
-        score = _criterion(prim.trimmed_chi2(_residuals(got[0], ps, ss)), got[0].n_params, n, params.criterion)
+        score = _criterion(prim.trimmed_chi2(_residuals(got[0], ps, ss)), got[0].n_params, n, params.criterion,
+                           rho)
         if found is None or score < found[3]:
             found = (c, got[0], got[1], score)
     return None if found is None else found[:3]
@@ -618,7 +627,8 @@ def _refit(fit, pts, sig, nrm, params: SelectParams):
     return prim.fit_cone(pts, sig, init=init, axis_search=False, **kw)
 
 
-def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, rays=None) -> PatchClassification:
+def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, rays=None,
+                     correlation_area: float = 1.0) -> PatchClassification:
     n_in = len(pts)
     n_dropped = 0
     keep = None
@@ -639,6 +649,8 @@ def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, ray
     ps, ss = pts[idx], sig[idx]
     ns = None if nrm is None else nrm[idx]
     n = len(ps)
+    # points of the subsample per independent error: the image's correlation area thinned by the stride
+    rho = max(1.0, float(correlation_area) * n / n_all)
     kw = {"max_points": None, "huber": params.huber, "max_iter": params.max_iter}
     fits: dict[str, Primitive] = {}
     fits["PLAN"] = prim.fit_plane(ps, ss, ns)
@@ -651,14 +663,16 @@ def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, ray
     flat = False
     if params.plane_gate > 0 and fits["PLAN"].ok:
         dec = _curvature_gain(fits["PLAN"], ps, ss)
-        price = 2.0 * np.log(n) + (2.0 * np.log(params.planar_hint_odds) if planar_hint else 0.0)
-        flat = dec < params.plane_gate * price and _criteria({"PLAN": fits["PLAN"]}, n, params)[1]["PLAN"] >= 0.5
+        price = 2.0 * _price(n, "bic", rho) + (2.0 * np.log(params.planar_hint_odds) if planar_hint else 0.0)
+        flat = dec / rho < params.plane_gate * price and \
+            _criteria({"PLAN": fits["PLAN"]}, n, params, rho)[1]["PLAN"] >= 0.5
     if flat:
         # no quadratic height field does better than the plane by the price of the curved models' two extra
         # parameters: cylinders, cones and spheres (locally such height fields) cannot win; not fitted
-        crit, gof = _criteria(fits, n, params)
+        crit, gof = _criteria(fits, n, params, rho)
         return _decide(fits, crit, gof, None, ps, ss, pts, sig, nrm, rays, params, planar_hint, n, n_all,
-                       {"curved_fits_skipped": True, "curvature_gain": dec, "n_gross_outliers": n_dropped},
+                       {"curved_fits_skipped": True, "curvature_gain": dec, "n_gross_outliers": n_dropped,
+                        "correlation": rho},
                        n_in=n_in, keep=keep)
     q = fit_quadric(ps, ss, max_iter=3, with_cov=False)
     axes = prim.axis_candidates(ps, ss, ns, quadric=q)
@@ -666,8 +680,7 @@ def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, ray
     skip_cone = False
     if fits["CYL"].ok and params.cone_score_skip > 0:
         sc = _cone_score(fits["CYL"], ps, ss, params.huber)
-        pen = np.log(n) if params.criterion == "bic" else 2.0
-        if sc is not None and sc[0] < params.cone_score_skip * pen:
+        if sc is not None and sc[0] / rho < params.cone_score_skip * _price(n, params.criterion, rho):
             skip_cone = True
     if skip_cone:
         # the cone cannot pay for its parameter: its criterion is that of the cylinder plus the price of one
@@ -683,8 +696,8 @@ def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, ray
         fits["CONE"] = prim.fit_cone(ps, ss, ns, init=fits["CYL"] if fits["CYL"].ok else None, axes=axes,
                                      quadric=q, stop_above=cap(), **kw)
     fits["SPH"] = prim.fit_sphere(ps, ss, stop_above=cap(), **kw)
-    crit, gof = _criteria(fits, n, params)
-    extra = {"cone_skipped": skip_cone, "n_gross_outliers": n_dropped}
+    crit, gof = _criteria(fits, n, params, rho)
+    extra = {"cone_skipped": skip_cone, "n_gross_outliers": n_dropped, "correlation": rho}
     return _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params, planar_hint, n, n_all, extra,
                    axes=axes, ns=ns, n_in=n_in, keep=keep)
 
@@ -705,13 +718,13 @@ def _curvature_gain(plane: prim.PlaneFit, ps: np.ndarray, ss: np.ndarray) -> flo
     return _chi2_of(plane) - prim.trimmed_chi2(r)
 
 
-def _criteria(fits, n: int, params: SelectParams) -> tuple[dict[str, float], dict[str, float]]:
+def _criteria(fits, n: int, params: SelectParams, rho: float = 1.0) -> tuple[dict[str, float], dict[str, float]]:
     crit: dict[str, float] = {}
     gof: dict[str, float] = {}
     for c, f in fits.items():
         if f.ok and np.isfinite(f.chi2):
             chi2 = _chi2_of(f)
-            crit[c] = _criterion(chi2, f.n_params, n, params.criterion)
+            crit[c] = _criterion(chi2, f.n_params, n, params.criterion, rho)
             dof = max(n - f.n_params, 1)
             thr = params.gof_factor + params.gof_z * np.sqrt(2.0 / dof)
             gof[c] = _gof(chi2 / dof, thr, params.gof_width)
@@ -727,9 +740,11 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
             n_all: int, extra: dict, axes=None, ns=None, n_in: int = 0, keep=None) -> PatchClassification:
     kw = {"max_points": None, "huber": params.huber, "max_iter": params.max_iter}
     skip_cone = extra.get("cone_skipped", False)
+    rho = extra.get("correlation", 1.0)
     if params.quadric_as_other:
         if q is not None and q.ok and _single_sheet(q, ps, fits["PLAN"]):
-            crit["OTH"] = _criterion(_quadric_chi2_trim(q, ps, ss), 9, n, params.criterion) + params.other_penalty
+            crit["OTH"] = _criterion(_quadric_chi2_trim(q, ps, ss), 9, n, params.criterion, rho) + \
+                params.other_penalty
     if planar_hint and "PLAN" in crit:
         crit["PLAN"] -= 2.0 * np.log(params.planar_hint_odds)
     if not crit:
@@ -750,7 +765,7 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
     label = max(CLASSES, key=lambda c: probs[c])
     details = {"criterion": crit, "gof": gof, "posterior": post, "fits": fits, "n_used": n, **extra}
     if label == "OTH" and params.min_inliers < 1.0:
-        rescue = _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params, n)
+        rescue = _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params, n, rho)
         if rescue is not None:
             label, fit, frac = rescue
             fits[label] = fit
@@ -806,6 +821,7 @@ def classify_patch(
     params: PaperParams | SelectParams | None = None,
     planar_hint: bool = False,
     rays: np.ndarray | None = None,
+    correlation_area: float = 1.0,
 ) -> PatchClassification:
     """Classify a surface patch as PLAN, CYL, SPH, CONE or OTH.
 
@@ -829,6 +845,12 @@ def classify_patch(
         called when needed. ``select`` then refits
         a chosen cylinder or sphere in range space (see :attr:`SelectParams.range_refit`); ``paper``
         ignores it.
+    correlation_area : float
+        Pixels per independent range error in the patch's image (>= 1;
+        :func:`recognition.segmentation.noise_correlation_area`). ``select`` divides its chi² differences by
+        the points of its subsample per independent error and prices parameters by the independent samples
+        (BIC's ``ln n_eff``): correlated errors are not evidence for a more flexible model. 1 (default):
+        independent errors; ``paper`` ignores it.
 
     Returns
     -------
@@ -856,4 +878,4 @@ def classify_patch(
         return _classify_paper(pts, sig, nrm, params, planar_hint)
     if rays is not None and not callable(rays):
         rays = _check_rays(rays, len(pts))
-    return _classify_select(pts, sig, nrm, params, planar_hint, rays)
+    return _classify_select(pts, sig, nrm, params, planar_hint, rays, correlation_area)

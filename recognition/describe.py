@@ -13,6 +13,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.ndimage as ndi
 
 from recognition.classify import PaperParams, PatchClassification, SelectParams, classify_patch
 from recognition.segmentation import Segmentation, SegmentationParams, SurfaceType, segment
@@ -140,6 +141,8 @@ def describe(scan: Scan, params: DescribeParams = DescribeParams(),
     flat_sigma = sigma.reshape(-1)
     flat_normals = segmentation.normals.reshape(-1, 3)
     offsets = _footprint_offsets(scan.noise) if params.classifier == "select" else None
+    window = scan.noise.matching_window_px
+    interior = window_interior(segmentation.labels, window).ravel() if window > 1 else None
     patches = []
     for seg_patch in segmentation.patches:
         pix = np.ravel_multi_index((seg_patch.pixels[:, 0], seg_patch.pixels[:, 1]), scan.range.shape)
@@ -148,15 +151,33 @@ def describe(scan: Scan, params: DescribeParams = DescribeParams(),
         if len(pix) < params.min_classify_pixels:
             cls = _too_small(len(pix))
         else:
-            cls = classify_patch(pts, np.maximum(sig, 1e-6), flat_normals[pix], method=params.classifier,
-                                 params=params.classifier_params, planar_hint=planar,
+            # fitted on the pixels whose matching window stays on the patch, when enough of them remain
+            use = slice(None)
+            if interior is not None and interior[pix].sum() >= max(params.min_classify_pixels, 0.25 * len(pix)):
+                use = interior[pix]
+            rows, cols = seg_patch.pixels[use, 0], seg_patch.pixels[use, 1]
+            cls = classify_patch(pts[use], np.maximum(sig[use], 1e-6), flat_normals[pix[use]],
+                                 method=params.classifier, params=params.classifier_params, planar_hint=planar,
+                                 correlation_area=scan.noise.correlation_area,
                                  rays=None if offsets is None else functools.partial(
-                                     patch_subrays, scan.sensor, offsets, seg_patch.pixels[:, 0],
-                                     seg_patch.pixels[:, 1]))
+                                     patch_subrays, scan.sensor, offsets, rows, cols))
         patches.append(ScenePatch(seg_patch.id, pix, pts, sig, SurfaceType(seg_patch.surface_type), cls,
                                   seg_patch.small, seg_patch.noisy))
     timing["classification"] = time.perf_counter() - t0
     return SceneDescription(tuple(patches), segmentation.labels, segmentation, sigma, timing)
+
+
+def window_interior(labels: np.ndarray, window: int) -> np.ndarray:
+    """(H, W) bool: pixels whose ``window x window`` neighbourhood lies in their own patch (``labels``, -1 for
+    none). A stereo matcher's window that straddles another surface blends the two (the foreground's depth
+    spreads over the background by about half a window), so those pixels are left out of the fits of
+    sensors with a matching window (:attr:`sensors.noise.NoiseModel.matching_window_px`); all labelled
+    pixels for ``window`` 1."""
+    if window <= 1:
+        return labels >= 0
+    lo = ndi.minimum_filter(labels, size=window, mode="constant", cval=-1)
+    hi = ndi.maximum_filter(labels, size=window, mode="constant", cval=-1)
+    return (labels >= 0) & (lo == hi)
 
 
 def check_scan(scan: Scan, max_pixels: int = MAX_PIXELS) -> None:

@@ -291,3 +291,54 @@ def test_trimmed_rescue_runs_when_enabled_and_keeps_tori_oth_by_default():
     _check_result(r)
     if r.label != "OTH":
         assert r.details["trimmed_inlier_fraction"] >= 0.8
+
+
+def _cylinder_with_correlated_noise(seed: int, window: int, radius: float = 0.04, sigma: float = 1.5e-3,
+                                    distance: float = 0.8, half: int = 80) -> np.ndarray:
+    """Points of a vertical cylinder seen by a 525 px pinhole camera from ``distance``, range noise along
+    the ray averaged over a ``window`` x ``window`` matching window (unit variance per pixel, as
+    ``sensors.simulate`` makes it); pixels beyond 72 deg of incidence left out."""
+    import scipy.ndimage as ndi
+
+    g = np.random.default_rng(seed)
+    u, v = np.meshgrid(np.arange(-half, half) + 0.5, np.arange(-half, half) + 0.5)
+    d = np.stack([u / 525.0, v / 525.0, np.ones_like(u)], -1)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    a = d[..., 0] ** 2 + d[..., 2] ** 2  # ray x cylinder x^2 + (z - distance)^2 = radius^2
+    b = -2.0 * distance * d[..., 2]
+    disc = b * b - 4.0 * a * (distance**2 - radius**2)
+    t = (-b - np.sqrt(np.maximum(disc, 0.0))) / (2.0 * a)
+    cos_i = np.abs(d[..., 0] * t * d[..., 0] + d[..., 2] * (t * d[..., 2] - distance)) / radius
+    field = ndi.uniform_filter(g.standard_normal(u.shape), size=window, mode="reflect") * window
+    r = t + sigma * field
+    return (r[..., None] * d)[(disc > 0) & (cos_i > 0.3)]
+
+
+def test_correlated_errors_are_not_evidence_for_a_more_flexible_model():
+    """Errors correlated over a 15 x 15 window: counted as independent, a general quadric or a cone
+    "explains" the correlated bumps of most draws; with the correlation area every draw is a cylinder of
+    the right radius."""
+    w = 15
+    labels = []
+    for seed in range(6):
+        pts = _cylinder_with_correlated_noise(seed, w)
+        sig = np.full(len(pts), 1.5e-3)
+        r = classify_patch(pts, sig, correlation_area=float(w * w))
+        assert r.label == "CYL", (seed, r.probabilities)
+        assert r.invariants["radius_m"][0] == pytest.approx(0.04, rel=0.05)
+        labels.append(classify_patch(pts, sig).label)
+    assert sum(lab != "CYL" for lab in labels) >= 3, labels
+
+
+def test_window_interior_leaves_out_half_a_window_at_every_patch_border():
+    from recognition.describe import window_interior
+
+    labels = np.full((20, 30), -1)
+    labels[2:12, 3:13] = 0  # a 10 x 10 patch in no-return pixels
+    labels[2:12, 13:25] = 1  # its neighbour on the right
+    np.testing.assert_array_equal(window_interior(labels, 1), labels >= 0)
+    inner = window_interior(labels, 5)  # 2 pixels in from every border, the shared one too
+    want = np.zeros_like(inner)
+    want[4:10, 5:11] = True
+    want[4:10, 15:23] = True
+    np.testing.assert_array_equal(inner, want)
