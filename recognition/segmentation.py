@@ -886,7 +886,7 @@ def _quick_fit(x: np.ndarray, u: np.ndarray, s: np.ndarray, planar: bool,
 
 
 def _rms(z: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(z**2))) if z.size else float("inf")
+    return float(np.sqrt(z @ z / z.size)) if z.size else float("inf")
 
 
 @dataclass
@@ -917,6 +917,11 @@ _UPPER3 = np.triu_indices(3)
 def _group_sums(values: np.ndarray, starts: np.ndarray) -> np.ndarray:
     """Sums of ``values`` (N, ...) over the contiguous groups beginning at ``starts``."""
     return np.add.reduceat(values, starts, axis=0)
+
+
+def _group_grams(A: np.ndarray, starts: np.ndarray, cnt: np.ndarray) -> np.ndarray:
+    """Gram matrices ``A_g' A_g`` (G, k, k) of the contiguous row groups of ``A`` (N, k)."""
+    return np.stack([A[s:s + c].T @ A[s:s + c] for s, c in zip(starts.tolist(), cnt.tolist(), strict=True)])
 
 
 def _symmetric(upper: np.ndarray, n: int, iu) -> np.ndarray:
@@ -956,9 +961,8 @@ def _quadric_fits(X, U, S, gid, starts, cnt):
     scale = np.where(scale > 0, scale, 1.0)
     y = d / scale[gid, None]
     D = quadric_monomials(y)
-    M = _symmetric(_group_sums(D[:, _UPPER10[0]] * D[:, _UPPER10[1]], starts), 10, _UPPER10)
-    Y = np.column_stack([y, np.ones(len(y))])
-    S4 = _symmetric(_group_sums(Y[:, _UPPER4[0]] * Y[:, _UPPER4[1]], starts), 4, _UPPER4)
+    M = _group_grams(D, starts, cnt)
+    S4 = _group_grams(np.column_stack([y, np.ones(len(y))]), starts, cnt)
     N9 = np.einsum("kmi,gmn,knj->gij", MONOMIAL_GRADIENT, S4, MONOMIAL_GRADIENT)[:, :9, :9]
     tr = np.trace(M, axis1=1, axis2=2)
     ev = np.linalg.eigvalsh(M / np.where(tr > 0, tr, 1.0)[:, None, None])
@@ -1355,6 +1359,56 @@ def _class_boundary(ca: np.ndarray, cb: np.ndarray, min_pixels: int) -> bool:
                       {SurfaceType.CYLINDRICAL, SurfaceType.HYPERBOLIC})
 
 
+@dataclass(frozen=True)
+class _FitPart:
+    """A patch's merge-test sample (its points, rays and sigmas) with its centroid and centred scatter: the
+    total-least-squares plane of a union of parts follows from these moments alone."""
+
+    n: int
+    XU: np.ndarray  # (n, 6): points and unit rays
+    S: np.ndarray  # (n,) sigmas
+    mean: np.ndarray
+    scatter: np.ndarray
+
+    @classmethod
+    def of(cls, idx: np.ndarray, st: _State) -> _FitPart:
+        X = st.X[idx]
+        mean = X.mean(axis=0) if len(X) else np.zeros(3)
+        d = X - mean
+        return cls(len(X), np.hstack([X, st.U[idx]]), st.S[idx], mean, d.T @ d)
+
+    def chi2(self, normal: np.ndarray, offset: float) -> float:
+        """Sum of squared ray z-residuals (as in :func:`_plane_fits`) to the plane ``normal . x = offset``."""
+        N = np.zeros((6, 2))
+        N[:3, 0] = N[3:, 1] = normal
+        f, g = (self.XU @ N).T
+        with np.errstate(invalid="ignore", divide="ignore"):
+            z = (f - offset) / (np.maximum(np.abs(g), _MIN_GRAZING) * self.S)
+        return float(z @ z)
+
+
+def _plane_union_rms(large: _FitPart, small: _FitPart | None = None) -> tuple[float, float]:
+    """RMS ray z-residual (as in :func:`_plane_fits`) of the total-least-squares plane of ``large`` and
+    ``small`` together, over all their points and over ``small``'s (``large``'s without ``small``); inf for
+    fewer than 3 points (NaN residuals, impossible for valid pixels, would make them NaN: never accepted)."""
+    if small is None:
+        if large.n < 3:
+            return float("inf"), float("inf")
+        normal = np.linalg.eigh(large.scatter)[1][:, 0]
+        c = large.chi2(normal, float(large.mean @ normal))
+        return float(np.sqrt(c / large.n)), float(np.sqrt(c / large.n))
+    n = large.n + small.n
+    if n < 3 or small.n == 0:
+        return float("inf"), float("inf")
+    mean = (large.n * large.mean + small.n * small.mean) / n
+    d = large.mean - small.mean
+    scatter = large.scatter + small.scatter + (large.n * small.n / n) * np.outer(d, d)
+    normal = np.linalg.eigh(scatter)[1][:, 0]
+    offset = float(mean @ normal)
+    c_small = small.chi2(normal, offset)
+    return float(np.sqrt((large.chi2(normal, offset) + c_small) / n)), float(np.sqrt(c_small / small.n))
+
+
 def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
     """Greedy best-first merging of adjacent patches whose union fits one surface (returns new labels).
 
@@ -1376,14 +1430,15 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
     members = dict(groups)
     subs = {k: _subsample(v, nmax) for k, v in members.items()}
     counts = {k: np.bincount(st.hk[v], minlength=5) for k, v in members.items()}
+    planar_class = {k: _is_planar_counts(c) for k, c in counts.items()}
+    parts = {k: _FitPart.of(subs[k], st) for k in members}
 
-    flats: dict[int, bool] = {}  # whether a plane fits the patch, computed in batches when needed
+    flats: dict[int, bool] = {}  # whether a plane fits the patch, computed when needed
 
     def update_flats(keys) -> None:
-        keys = [k for k in keys if k not in flats]
-        if keys:
-            _, z_plane = _quick_fits([subs[k] for k in keys], np.ones(len(keys), bool), st)
-            flats.update({k: _rms(z) <= thr for k, z in zip(keys, z_plane, strict=True)})
+        for k in keys:
+            if k not in flats:
+                flats[k] = _plane_union_rms(parts[k])[0] <= thr
 
     update_flats(list(members))
     version = dict.fromkeys(members, 0)
@@ -1398,35 +1453,37 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
         out = [float("inf")] * len(pairs)
         update_flats(sorted({k for pair in pairs for k in pair}))
         todo, unions, planar, n_large = [], [], [], []
+        curved = []  # (index in todo) of the unions fitted by a quadric, in one batch
         for i, (a, b) in enumerate(pairs):
             if st.params.class_min_pixels and _class_boundary(counts[a], counts[b], st.params.class_min_pixels):
                 continue
-            sa, sb = subs[a], subs[b]
-            if sa.size < sb.size:
-                sa, sb = sb, sa
+            if subs[a].size < subs[b].size:
+                a, b = b, a
             todo.append(i)
-            unions.append(np.concatenate([sa, sb]))
-            n_large.append(sa.size)
+            unions.append(np.concatenate([subs[a], subs[b]]))
+            n_large.append(subs[a].size)
             # two planes (by class, or by fit: crease pixels make a face look curved) merge only as one
             # plane, never as the plane pair a general quadric fits exactly
-            planar.append((_is_planar_counts(counts[a]) and _is_planar_counts(counts[b])) or (flats[a] and flats[b]))
-        if todo:
-            _, zs = _quick_fits(unions, np.array(planar), st)
-            retry = []
-            for j, (i, z, n) in enumerate(zip(todo, zs, n_large, strict=True)):
-                if _rms(z[n:]) <= 1.5 * thr:
-                    out[i] = _rms(z)
-                if st.params.curved_planar_merge and planar[j] and not out[i] <= thr:
-                    retry.append(j)
-            if retry:
-                # two planar-looking pieces of one gently curved surface (a large pipe close to a noisy
-                # sensor): their union is a quadric, but not the plane pair of two faces at a crease
-                Pq, zq = _quick_fits([unions[j] for j in retry], np.zeros(len(retry), bool), st)
-                for k, j in enumerate(retry):
-                    n = n_large[j]
-                    if _rms(zq[k]) <= thr and _rms(zq[k][n:]) <= 1.5 * thr and \
-                            not _is_plane_pair(Pq[k], st.X[unions[j]], _PLANE_PAIR_TOL):
-                        out[todo[j]] = _rms(zq[k])
+            planar.append((planar_class[a] and planar_class[b]) or (flats[a] and flats[b]))
+            if planar[-1] or unions[-1].size < 10:  # (fewer than 10 points: a plane, as in _quick_fits)
+                rms_all, rms_small = _plane_union_rms(parts[a], parts[b])
+                if rms_small <= 1.5 * thr:
+                    out[i] = rms_all
+            else:
+                curved.append(len(todo) - 1)
+        # two planar-looking pieces of one gently curved surface (a large pipe close to a noisy sensor) that
+        # no plane fits are retried as a quadric, which must not be the plane pair of two faces at a crease
+        retry = [j for j in range(len(todo))
+                 if st.params.curved_planar_merge and planar[j] and not out[todo[j]] <= thr]
+        if curved or retry:
+            Pq, zq = _quick_fits([unions[j] for j in curved + retry], np.zeros(len(curved) + len(retry), bool), st)
+            for j, z in zip(curved, zq, strict=False):
+                if _rms(z[n_large[j]:]) <= 1.5 * thr:
+                    out[todo[j]] = _rms(z)
+            for j, p, z in zip(retry, Pq[len(curved):], zq[len(curved):], strict=True):
+                if _rms(z) <= thr and _rms(z[n_large[j]:]) <= 1.5 * thr and \
+                        not _is_plane_pair(p, st.X[unions[j]], _PLANE_PAIR_TOL):
+                    out[todo[j]] = _rms(z)
         return out
 
     heap: list[tuple[float, int, int, int, int]] = []
@@ -1450,7 +1507,11 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
         members[a].sort(kind="stable")  # two sorted runs: a linear merge
         subs[a] = _subsample(members[a], nmax)
         subs.pop(b)
+        parts[a] = _FitPart.of(subs[a], st)
+        parts.pop(b)
         counts[a] = counts[a] + counts.pop(b)
+        planar_class[a] = _is_planar_counts(counts[a])
+        planar_class.pop(b)
         flats.pop(b)
         flats.pop(a)
         version[a] += 1
