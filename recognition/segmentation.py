@@ -1377,6 +1377,22 @@ class _FitPart:
         d = X - mean
         return cls(len(X), np.hstack([X, st.U[idx]]), st.S[idx], mean, d.T @ d)
 
+    @classmethod
+    def batch(cls, subs: dict[int, np.ndarray], st: _State) -> dict[int, _FitPart]:
+        """:meth:`of` for every (non-empty) sample of ``subs`` at once."""
+        keys = list(subs)
+        cnt = np.array([subs[k].size for k in keys])
+        if cnt.size == 0 or cnt.min() == 0:
+            return {k: cls.of(subs[k], st) for k in keys}
+        ix = np.concatenate([subs[k] for k in keys])
+        starts = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+        XU = np.hstack([st.X[ix], st.U[ix]])
+        S = st.S[ix]
+        mean = _group_sums(XU[:, :3], starts) / cnt[:, None]
+        scatter = _group_grams(XU[:, :3] - np.repeat(mean, cnt, axis=0), starts, cnt)
+        return {k: cls(int(c), XU[s:s + c], S[s:s + c], mean[g], scatter[g])
+                for g, (k, s, c) in enumerate(zip(keys, starts.tolist(), cnt.tolist(), strict=True))}
+
     def chi2(self, normal: np.ndarray, offset: float) -> float:
         """Sum of squared ray z-residuals (as in :func:`_plane_fits`) to the plane ``normal . x = offset``."""
         N = np.zeros((6, 2))
@@ -1431,7 +1447,7 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
     subs = {k: _subsample(v, nmax) for k, v in members.items()}
     counts = {k: np.bincount(st.hk[v], minlength=5) for k, v in members.items()}
     planar_class = {k: _is_planar_counts(c) for k, c in counts.items()}
-    parts = {k: _FitPart.of(subs[k], st) for k in members}
+    parts = _FitPart.batch(subs, st)
 
     flats: dict[int, bool] = {}  # whether a plane fits the patch, computed when needed
 
@@ -1561,9 +1577,12 @@ def _merge_enclosed(labels: np.ndarray, valid: np.ndarray, jump_h: np.ndarray, j
         for nb, j in zip((pad[1:-1, :-2], pad[1:-1, 2:], pad[:-2, 1:-1], pad[2:, 1:-1]), across, strict=True):
             m = (centre >= 0) & (nb != centre) & (nb != -3) & ~j
             pairs.append(np.stack([centre[m], nb[m]], axis=1))
-        pairs = np.unique(np.concatenate(pairs), axis=0)
+        pairs = np.concatenate(pairs)
         if pairs.size == 0:
             return labels
+        base = int(pairs.max()) + 3  # unique (centre, neighbour) rows, sorted, through one integer key each
+        key = np.unique(pairs[:, 0] * base + (pairs[:, 1] + 2))
+        pairs = np.stack([key // base, key % base - 2], axis=1)
         sizes = np.bincount(labels[labels >= 0])
         owner, first, n_other = np.unique(pairs[:, 0], return_index=True, return_counts=True)
         changed = False
