@@ -770,21 +770,26 @@ def _split_bad_seeds(seeds: np.ndarray, st: _State, params: SegmentationParams) 
     W = seeds.shape[1]
     t = params.seed_tile
     out = seeds.copy().ravel()
+    labs = [lab for lab, idx in groups.items() if idx.size >= 2 * params.min_seed_pixels]
+    bad = []
+    if labs:  # the seeds' RMS residuals to their fits, in one batch
+        subs = [_subsample(groups[lab], st.params.max_fit_points) for lab in labs]
+        cnt = np.array([sub.size for sub in subs])
+        ix = np.concatenate(subs)
+        z = _pixel_residuals(P, np.repeat(labs, cnt), st.X[ix], st.U[ix], st.S[ix])
+        rms = np.sqrt(_group_sums(z * z, np.concatenate([[0], np.cumsum(cnt)[:-1]])) / cnt)
+        bad = [lab for lab, r in zip(labs, rms, strict=True) if not r <= params.split_k]
+    tiles = {}
+    for lab in bad:
+        r, c = np.divmod(groups[lab], W)
+        tiles[lab] = np.unique((r // t) * (W // t + 1) + c // t, return_inverse=True)[1]
+    fit = _tiles_fit({lab: groups[lab] for lab in bad}, tiles, st, params)
     nxt = n
-    for lab, idx in groups.items():
-        if idx.size < 2 * params.min_seed_pixels:
-            continue
-        sub = _subsample(idx, st.params.max_fit_points)
-        z = _pixel_residuals(P[[lab]], np.zeros(sub.size, np.int64), st.X[sub], st.U[sub], st.S[sub])
-        if _rms(z) <= params.split_k:
-            continue
-        r, c = np.divmod(idx, W)
-        tile = (r // t) * (W // t + 1) + c // t
-        _, inv = np.unique(tile, return_inverse=True)
-        if not _tiles_fit(idx, inv, st, params):
+    for lab in bad:
+        if not fit[lab]:
             continue  # the tiles fit no better: the noise is larger than declared, not two surfaces
-        out[idx] = nxt + inv
-        nxt += int(inv.max()) + 1
+        out[groups[lab]] = nxt + tiles[lab]
+        nxt += int(tiles[lab].max()) + 1
     out = out.reshape(seeds.shape)
     # tiles may be disconnected pieces: relabel connected components of each label, drop tiny pieces
     lab_cc = _split_disconnected(out, out >= 0)
@@ -794,16 +799,29 @@ def _split_bad_seeds(seeds: np.ndarray, st: _State, params: SegmentationParams) 
     return np.where(lab_cc >= 0, remap[np.maximum(lab_cc, 0)], -1).astype(np.int32)
 
 
-def _tiles_fit(idx: np.ndarray, inv: np.ndarray, st: _State, params: SegmentationParams) -> bool:
-    """True when most tiles of a badly fitted seed are fitted well (median tile RMS within ``merge_k``)."""
-    order = np.argsort(inv, kind="stable")
-    cuts = np.flatnonzero(np.diff(inv[order])) + 1
-    parts = [part for part in np.split(idx[order], cuts) if part.size >= 10]
+def _tiles_fit(seeds: dict[int, np.ndarray], tiles: dict[int, np.ndarray], st: _State,
+               params: SegmentationParams) -> dict[int, bool]:
+    """For each badly fitted seed (pixels ``seeds[k]``, tile index per pixel ``tiles[k]``): are most of its
+    tiles fitted well (median tile RMS within ``merge_k``)? All tiles fitted in one batch."""
+    parts, owner = [], []
+    for k, idx in seeds.items():
+        inv = tiles[k]
+        order = np.argsort(inv, kind="stable")
+        cuts = np.flatnonzero(np.diff(inv[order])) + 1
+        mine = [part for part in np.split(idx[order], cuts) if part.size >= 10]
+        parts += mine
+        owner += [k] * len(mine)
+    out = dict.fromkeys(seeds, False)
     if not parts:
-        return False
+        return out
     planar = np.array([_is_planar_counts(np.bincount(st.hk[part], minlength=5)) for part in parts])
     _, zs = _quick_fits(parts, planar, st)
-    return float(np.median([_rms(z) for z in zs])) <= params.merge_k
+    rms = np.array([_rms(z) for z in zs])
+    owner = np.array(owner)
+    for k in seeds:
+        if (owner == k).any():
+            out[k] = float(np.median(rms[owner == k])) <= params.merge_k
+    return out
 
 
 def _tile_small_leftovers(comp: np.ndarray, st: _State, params: SegmentationParams) -> np.ndarray:
