@@ -1563,6 +1563,19 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
     return out
 
 
+def _unique_pairs(pairs: np.ndarray, return_counts: bool = False):
+    """``np.unique(pairs, axis=0)`` (sorted rows; with their counts) of integer pairs (N, 2) whose entries
+    are >= -2, through one integer key per row (much faster than the structured sort of ``axis=0``)."""
+    pairs = np.asarray(pairs, np.int64)
+    if pairs.size == 0:
+        empty = np.zeros((0, 2), np.int64)
+        return (empty, np.zeros(0, np.int64)) if return_counts else empty
+    base = int(pairs.max()) + 3
+    key, counts = np.unique(pairs[:, 0] * base + (pairs[:, 1] + 2), return_counts=True)
+    out = np.stack([key // base, key % base - 2], axis=1)
+    return (out, counts) if return_counts else out
+
+
 def _merge_enclosed(labels: np.ndarray, valid: np.ndarray, jump_h: np.ndarray, jump_v: np.ndarray,
                     min_pixels: int) -> np.ndarray:
     """Merge small patches lying wholly inside one other patch.
@@ -1598,9 +1611,7 @@ def _merge_enclosed(labels: np.ndarray, valid: np.ndarray, jump_h: np.ndarray, j
         pairs = np.concatenate(pairs)
         if pairs.size == 0:
             return labels
-        base = int(pairs.max()) + 3  # unique (centre, neighbour) rows, sorted, through one integer key each
-        key = np.unique(pairs[:, 0] * base + (pairs[:, 1] + 2))
-        pairs = np.stack([key // base, key % base - 2], axis=1)
+        pairs = _unique_pairs(pairs)
         sizes = np.bincount(labels[labels >= 0])
         owner, first, n_other = np.unique(pairs[:, 0], return_index=True, return_counts=True)
         changed = False
@@ -1632,7 +1643,7 @@ def _attach_isolated(labels: np.ndarray, st: _State, jump_h: np.ndarray, jump_v:
         for dst, sel in ((pairs_j, m & j), (pairs_n, m & ~j)):
             dst.append(np.stack([a[sel], b[sel]], axis=1))
             dst.append(np.stack([b[sel], a[sel]], axis=1))
-    across = np.unique(np.concatenate(pairs_j), axis=0)
+    across = _unique_pairs(np.concatenate(pairs_j))
     linked = np.unique(np.concatenate(pairs_n)[:, 0])
     if across.size == 0:
         return labels
@@ -1671,7 +1682,7 @@ def _border_pairs(labels: np.ndarray, jump_h: np.ndarray, jump_v: np.ndarray) ->
     pairs = np.concatenate(parts) if parts else np.zeros((0, 2), np.int64)
     if pairs.size == 0:
         return pairs, np.zeros(0, np.int64)
-    return np.unique(pairs, axis=0, return_counts=True)
+    return _unique_pairs(pairs, return_counts=True)
 
 
 def _absorb_fragments(labels: np.ndarray, st: _State, jump_h: np.ndarray, jump_v: np.ndarray,

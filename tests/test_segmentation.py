@@ -6,6 +6,8 @@ import _synthetic_range as S  # tests/ is on sys.path under pytest's default imp
 import numpy as np
 import pytest
 import scipy.ndimage as ndi
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from evaluation.hoover import connected_truth_regions, hoover_score
 from recognition import derivatives as D
@@ -647,3 +649,18 @@ def test_a_far_box_corner_that_no_quadric_fits_is_cut_into_its_faces():
     pipe += up * rng.normal(0.0, 0.01, 800)[:, None]
     npipe = np.column_stack([np.zeros(800), np.sin(phi), -np.cos(phi)])
     assert set(split(pipe, up, npipe, sigma=0.01)) == {0}
+
+
+@given(st.lists(st.tuples(st.integers(-2, 40), st.integers(-2, 40)), max_size=60))
+@settings(max_examples=60, deadline=None)
+def test_unique_pairs_equal_numpy_unique_rows(rows):
+    from recognition.segmentation import _unique_pairs
+
+    pairs = np.array(rows, np.int64).reshape(-1, 2)
+    got, counts = _unique_pairs(pairs, return_counts=True)
+    if pairs.size == 0:
+        assert got.shape == (0, 2) and counts.size == 0
+        return
+    want, want_counts = np.unique(pairs, axis=0, return_counts=True)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(counts, want_counts)
