@@ -67,6 +67,12 @@ class LocaliseParams:
         candidates are restricted accordingly. Ignored without a prior.
     second_stage_fraction : a patch left out of the tree is paired with the model feature that the
         prediction shows on at least this fraction of its agreeing pixels.
+    slide_steps : without a pose prior and without a fully constrained hypothesis, each of the first
+        ``max_verify`` hypotheses (best tree score first) whose pairs leave one translation free (a floor, a
+        wall and pipes along that wall) is slid along it: the
+        sensor positions within the model's extent along the free direction, in this many steps, then a
+        quarter step around the best, each scored by its agreement on a coarse prediction (``screen_stride``);
+        the best starts the verification and ICP (which cannot converge from metres away). 0: off.
     """
 
     match: MatchParams = field(default_factory=lambda: MatchParams(max_hypotheses=20))
@@ -88,6 +94,7 @@ class LocaliseParams:
     prior_angle_deg: float = 5.0
     prior_dist_m: float = 0.3
     second_stage_fraction: float = 0.5
+    slide_steps: int = 32
 
     def __post_init__(self):
         if self.max_verify < 1:
@@ -98,6 +105,8 @@ class LocaliseParams:
             raise ValueError("prior_angle_deg and prior_dist_m must be > 0")
         if not 0 < self.second_stage_fraction <= 1:
             raise ValueError(f"second_stage_fraction must be in (0, 1], got {self.second_stage_fraction}")
+        if self.slide_steps < 0:
+            raise ValueError(f"slide_steps must be >= 0, got {self.slide_steps}")
 
 
 @dataclass(frozen=True)
@@ -196,6 +205,55 @@ def _close(A: np.ndarray, B: np.ndarray, description: SceneDescription, angle_de
     return bool(c > math.cos(math.radians(angle_deg)) and np.linalg.norm(A[:3, 3] - B[:3, 3]) < rel * scale)
 
 
+def free_translation(free_dof: int, free_basis: np.ndarray) -> np.ndarray | None:
+    """The unit world direction (3,) of a pose's one free DOF when it is a pure translation, else None.
+
+    ``free_basis`` (6, free_dof) over (rotation vector, translation), as in
+    :class:`recognition.pose.PoseEstimate`."""
+    if free_dof != 1:
+        return None
+    b = np.asarray(free_basis, float)[:, 0]
+    t = float(np.linalg.norm(b[3:]))
+    if t < 0.5 or np.linalg.norm(b[:3]) > 1e-6 * max(t, 1.0):
+        return None
+    return b[3:] / t
+
+
+def slide_along(T: np.ndarray, direction: np.ndarray, points: np.ndarray, score, steps: int) -> np.ndarray:
+    """``T`` (4, 4) translated along the unit world ``direction`` to the best-scoring place.
+
+    The sensor is kept within the extent of ``points`` (N, 3, world) along ``direction``: ``steps`` evenly
+    spaced places there, then nine at a quarter step around the best; ``score(T)`` -> float (higher is
+    better); ties keep the earliest (the unslid pose is tried first).
+    """
+    pos = float(T[:3, 3] @ direction)
+    proj = points @ direction
+    lo, hi = float(proj.min()) - pos, float(proj.max()) - pos
+    step = (hi - lo) / max(steps, 1)
+
+    def moved(s: float) -> np.ndarray:
+        out = T.copy()
+        out[:3, 3] = T[:3, 3] + s * direction
+        return out
+
+    best_s, best = 0.0, score(T)
+    for centre, offsets in ((None, np.linspace(lo, hi, steps + 1)), (0.0, np.linspace(-step, step, 9))):
+        base = best_s if centre is not None else 0.0
+        for s in base + offsets:
+            if s == best_s:
+                continue
+            v = score(moved(float(s)))
+            if v > best:
+                best_s, best = float(s), v
+    return moved(best_s)
+
+
+def _model_points(model: SceneModel) -> np.ndarray:
+    """Points on every feature of ``model`` (64 each, a fixed draw): its extent, world frame."""
+    rng = np.random.default_rng(0)
+    return np.concatenate([f.sample(64, rng)[0] for f in model.features])
+
+
 def localise(description: SceneDescription, scan: Scan, model: SceneModel,
              params: LocaliseParams = LocaliseParams(), model_simulator=None,
              pairings: dict[int, tuple[str, str]] | None = None) -> PoseResult:
@@ -248,6 +306,16 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
     t0 = time.perf_counter()
     hyps = sorted(res.hypotheses, key=lambda h: (h.pose.free_dof > 0, -h.score))[: params.max_screen]
 
+    # the tree's score hardly tells a symmetric alternative from the right pose (DESIGN 6.3): every
+    # hypothesis is screened on a coarse prediction (a few ms each), the best few verified finer
+    screen_stride = max(params.screen_stride, params.verify.stride)
+    # before ICP the pose may be a fraction of a degree off: the agreement allows for it (``pre_icp_rel``)
+    pre_v = replace(params.verify, rel=max(params.verify.rel, params.pre_icp_rel))
+    screen_v = replace(pre_v, stride=screen_stride)
+    slide = prior is None and params.slide_steps > 0 and all(h.pose.free_dof > 0 for h in hyps)
+    extent = _model_points(model) if slide else None
+    slid: set[int] = set()  # ids of the hypotheses placed along their free direction by agreement
+
     def start_pose(h):
         T = h.pose.T_world_sensor
         if h.pose.free_dof > 0 and prior is not None:
@@ -256,14 +324,15 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
 
             pairs = [make_pair(res.items[i], el, e) for i, e in h.pairs if e >= 0]
             T = estimate_pose(pairs, T_init=prior, length_m=1.0).T_world_sensor
+        elif slide and len(slid) < params.max_verify:
+            direction = free_translation(h.pose.free_dof, h.pose.free_basis)
+            if direction is not None:
+                def score(T_s):
+                    return agreement(description, scan, predict(model_simulator, scan.sensor, T_s, screen_stride),
+                                     screen_v)[0]
+                T = slide_along(T, direction, extent, score, params.slide_steps)
+                slid.add(id(h))
         return T
-
-    # the tree's score hardly tells a symmetric alternative from the right pose (DESIGN 6.3): every
-    # hypothesis is screened on a coarse prediction (a few ms each), the best few verified finer
-    screen_stride = max(params.screen_stride, params.verify.stride)
-    # before ICP the pose may be a fraction of a degree off: the agreement allows for it (``pre_icp_rel``)
-    pre_v = replace(params.verify, rel=max(params.verify.rel, params.pre_icp_rel))
-    screen_v = replace(pre_v, stride=screen_stride)
     screened = []
     for h in hyps:
         T = start_pose(h)
@@ -321,7 +390,10 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
                         _explained(description, res.matchable, res.items, best))
         timing["icp"] += time.perf_counter() - t0
         if ir.ok:
-            T_final, cov, free = ir.T_world_sensor, ir.cov_T_world_sensor, min(free, ir.free_dof)
+            T_final, cov = ir.T_world_sensor, ir.cov_T_world_sensor
+            # a slid pose keeps its pairs' free DOF: agreement placed it, no pairing fixes it, and in a
+            # repetitive bay a wrong interpretation finds a well-agreeing place too
+            free = free if id(best) in slid else min(free, ir.free_dof)
         else:
             icp_note = f"; ICP not applied: {ir.reason}"
     pairs = {patch_ids[i]: (str(el.feature_id[e]) if e >= 0 else None) for i, e in best.pairs}
@@ -343,6 +415,8 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
         reason = "pose not refined"
     elif free > 0:
         reason = f"pose underconstrained: {free} free DOF"
+        if id(best) in slid:
+            reason += " (placed along it by agreement)"
     elif conf < params.min_confidence:
         reason = f"low confidence {conf:.2f} < {params.min_confidence}"
     elif ambiguous:
