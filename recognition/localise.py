@@ -71,8 +71,9 @@ class LocaliseParams:
         ``max_verify`` hypotheses (best tree score first) whose pairs leave one translation free (a floor, a
         wall and pipes along that wall) is slid along it: the
         sensor positions within the model's extent along the free direction, in this many steps, then a
-        quarter step around the best, each scored by its agreement on a coarse prediction (``screen_stride``);
-        the best starts the verification and ICP (which cannot converge from metres away). 0: off.
+        quarter step around the best, each scored by its agreement on a coarse prediction (pixel stride
+        ``slide_stride``, about 1 ms each on VGA); the best starts the verification and ICP (which cannot
+        converge from metres away). 0: off.
     """
 
     match: MatchParams = field(default_factory=lambda: MatchParams(max_hypotheses=20))
@@ -95,6 +96,7 @@ class LocaliseParams:
     prior_dist_m: float = 0.3
     second_stage_fraction: float = 0.5
     slide_steps: int = 32
+    slide_stride: int = 16
 
     def __post_init__(self):
         if self.max_verify < 1:
@@ -105,8 +107,9 @@ class LocaliseParams:
             raise ValueError("prior_angle_deg and prior_dist_m must be > 0")
         if not 0 < self.second_stage_fraction <= 1:
             raise ValueError(f"second_stage_fraction must be in (0, 1], got {self.second_stage_fraction}")
-        if self.slide_steps < 0:
-            raise ValueError(f"slide_steps must be >= 0, got {self.slide_steps}")
+        if self.slide_steps < 0 or self.slide_stride < 1:
+            raise ValueError(f"slide_steps must be >= 0 and slide_stride >= 1, got {self.slide_steps}, "
+                             f"{self.slide_stride}")
 
 
 @dataclass(frozen=True)
@@ -315,6 +318,7 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
     slide = prior is None and params.slide_steps > 0 and all(h.pose.free_dof > 0 for h in hyps)
     extent = _model_points(model) if slide else None
     slid: set[int] = set()  # ids of the hypotheses placed along their free direction by agreement
+    slide_v = replace(pre_v, stride=params.slide_stride)
 
     def start_pose(h):
         T = h.pose.T_world_sensor
@@ -328,8 +332,8 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
             direction = free_translation(h.pose.free_dof, h.pose.free_basis)
             if direction is not None:
                 def score(T_s):
-                    return agreement(description, scan, predict(model_simulator, scan.sensor, T_s, screen_stride),
-                                     screen_v)[0]
+                    return agreement(description, scan, predict(model_simulator, scan.sensor, T_s,
+                                                                params.slide_stride), slide_v)[0]
                 T = slide_along(T, direction, extent, score, params.slide_steps)
                 slid.add(id(h))
         return T
