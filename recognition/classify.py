@@ -62,6 +62,7 @@ Degenerate patches (fewer than 10 points, NaNs, collinear or exactly coplanar po
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -672,7 +673,7 @@ def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, ray
         crit, gof = _criteria(fits, n, params, rho)
         return _decide(fits, crit, gof, None, ps, ss, pts, sig, nrm, rays, params, planar_hint, n, n_all,
                        {"curved_fits_skipped": True, "curvature_gain": dec, "n_gross_outliers": n_dropped,
-                        "correlation": rho},
+                        "correlation": rho, "correlation_area": float(correlation_area)},
                        n_in=n_in, keep=keep)
     q = fit_quadric(ps, ss, max_iter=3, with_cov=False)
     axes = prim.axis_candidates(ps, ss, ns, quadric=q)
@@ -697,7 +698,8 @@ def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, ray
                                      quadric=q, stop_above=cap(), **kw)
     fits["SPH"] = prim.fit_sphere(ps, ss, stop_above=cap(), **kw)
     crit, gof = _criteria(fits, n, params, rho)
-    extra = {"cone_skipped": skip_cone, "n_gross_outliers": n_dropped, "correlation": rho}
+    extra = {"cone_skipped": skip_cone, "n_gross_outliers": n_dropped, "correlation": rho,
+             "correlation_area": float(correlation_area)}
     return _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params, planar_hint, n, n_all, extra,
                    axes=axes, ns=ns, n_in=n_in, keep=keep)
 
@@ -805,7 +807,11 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
         refit = prim.refit_along_rays(fit, pts, sig, rays, huber=params.huber, max_points=params.refit_points)
         details["geometric_fit"] = fit
         fit = refit
-    return _result(label, probs, plaus, fit, _invariants(fit, pts, params.invariant_sigma_scale), "", details)
+    # the final fit's covariance treats every point as an independent error; errors shared by groups of
+    # ``correlation_area`` pixels make its parameters vary up to that many times more (variance)
+    shared = math.sqrt(max(1.0, min(extra.get("correlation_area", 1.0), len(pts))))
+    return _result(label, probs, plaus, fit, _invariants(fit, pts, params.invariant_sigma_scale * shared), "",
+                   details)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -849,8 +855,10 @@ def classify_patch(
         Pixels per independent range error in the patch's image (>= 1;
         :func:`recognition.segmentation.noise_correlation_area`). ``select`` divides its chi² differences by
         the points of its subsample per independent error and prices parameters by the independent samples
-        (BIC's ``ln n_eff``): correlated errors are not evidence for a more flexible model. 1 (default):
-        independent errors; ``paper`` ignores it.
+        (BIC's ``ln n_eff``): correlated errors are not evidence for a more flexible model. The reported
+        invariants' sigmas are multiplied by ``sqrt(correlation_area)`` (at most the patch's point count):
+        the fits' covariances count every point as an independent error (the primitive's own covariance is
+        left as fitted). 1 (default): independent errors; ``paper`` ignores it.
 
     Returns
     -------

@@ -317,7 +317,7 @@ def _cylinder_with_correlated_noise(seed: int, window: int, radius: float = 0.04
 def test_correlated_errors_are_not_evidence_for_a_more_flexible_model():
     """Errors correlated over a 15 x 15 window: counted as independent, a general quadric or a cone
     "explains" the correlated bumps of most draws; with the correlation area every draw is a cylinder of
-    the right radius."""
+    the right radius, within two reported sigmas (the fit's own sigma is 7x too small here)."""
     w = 15
     labels = []
     for seed in range(6):
@@ -325,7 +325,9 @@ def test_correlated_errors_are_not_evidence_for_a_more_flexible_model():
         sig = np.full(len(pts), 1.5e-3)
         r = classify_patch(pts, sig, correlation_area=float(w * w))
         assert r.label == "CYL", (seed, r.probabilities)
-        assert r.invariants["radius_m"][0] == pytest.approx(0.04, rel=0.05)
+        radius, sigma = r.invariants["radius_m"]
+        assert radius == pytest.approx(0.04, rel=0.05)
+        assert abs(radius - 0.04) <= 2.0 * sigma  # the reported sigma counts correlated points as fewer
         labels.append(classify_patch(pts, sig).label)
     assert sum(lab != "CYL" for lab in labels) >= 3, labels
 
