@@ -852,8 +852,8 @@ def classify_patch(
         a chosen cylinder or sphere in range space (see :attr:`SelectParams.range_refit`); ``paper``
         ignores it.
     correlation_area : float
-        Pixels per independent range error in the patch's image (>= 1;
-        :func:`recognition.segmentation.noise_correlation_area`). ``select`` divides its chi² differences by
+        Pixels per independent range error in the patch's image (>= 1; the sensor's
+        :attr:`sensors.noise.NoiseModel.correlation_area`). ``select`` divides its chi² differences by
         the points of its subsample per independent error and prices parameters by the independent samples
         (BIC's ``ln n_eff``): correlated errors are not evidence for a more flexible model. The reported
         invariants' sigmas are multiplied by ``sqrt(correlation_area)`` (at most the patch's point count):

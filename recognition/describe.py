@@ -153,8 +153,9 @@ def describe(scan: Scan, params: DescribeParams = DescribeParams(),
         else:
             # fitted on the pixels whose matching window stays on the patch, when enough of them remain
             use = slice(None)
-            if interior is not None and interior[pix].sum() >= max(params.min_classify_pixels, 0.25 * len(pix)):
-                use = interior[pix]
+            inner = None if interior is None else interior[pix]
+            if inner is not None and inner.sum() >= max(params.min_classify_pixels, 0.25 * len(pix)):
+                use = inner
             rows, cols = seg_patch.pixels[use, 0], seg_patch.pixels[use, 1]
             cls = classify_patch(pts[use], np.maximum(sig[use], 1e-6), flat_normals[pix[use]],
                                  method=params.classifier, params=params.classifier_params, planar_hint=planar,

@@ -240,14 +240,18 @@ def slide_along(T: np.ndarray, direction: np.ndarray, points: np.ndarray, score,
         return out
 
     best_s, best = 0.0, score(T)
-    for centre, offsets in ((None, np.linspace(lo, hi, steps + 1)), (0.0, np.linspace(-step, step, 9))):
-        base = best_s if centre is not None else 0.0
-        for s in base + offsets:
+
+    def visit(places: np.ndarray) -> None:
+        nonlocal best_s, best
+        for s in places:
             if s == best_s:
                 continue
             v = score(moved(float(s)))
             if v > best:
                 best_s, best = float(s), v
+
+    visit(np.linspace(lo, hi, steps + 1))
+    visit(best_s + np.linspace(-step, step, 9))  # about the best coarse place
     return moved(best_s)
 
 

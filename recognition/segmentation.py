@@ -819,8 +819,9 @@ def _tiles_fit(seeds: dict[int, np.ndarray], tiles: dict[int, np.ndarray], st: _
     rms = np.array([_rms(z) for z in zs])
     owner = np.array(owner)
     for k in seeds:
-        if (owner == k).any():
-            out[k] = float(np.median(rms[owner == k])) <= params.merge_k
+        mine = owner == k
+        if mine.any():
+            out[k] = float(np.median(rms[mine])) <= params.merge_k
     return out
 
 
@@ -927,8 +928,6 @@ def _is_planar_counts(counts: np.ndarray) -> bool:
 # The quick fits of many groups at once (seeds, tiles, patches): one pass of numpy over all their points
 # instead of a Python loop of small fits. Same fits as :func:`_quick_fit`; points arrive sorted by group.
 
-_UPPER10 = np.triu_indices(10)
-_UPPER4 = np.triu_indices(4)
 _UPPER3 = np.triu_indices(3)
 
 
@@ -1486,7 +1485,7 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
         in one batch."""
         out = [float("inf")] * len(pairs)
         update_flats(sorted({k for pair in pairs for k in pair}))
-        todo, unions, planar, n_large = [], [], [], []
+        todo, ordered, planar, n_large = [], [], [], []
         curved = []  # (index in todo) of the unions fitted by a quadric, in one batch
         for i, (a, b) in enumerate(pairs):
             if st.params.class_min_pixels and _class_boundary(counts[a], counts[b], st.params.class_min_pixels):
@@ -1494,12 +1493,12 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
             if subs[a].size < subs[b].size:
                 a, b = b, a
             todo.append(i)
-            unions.append(np.concatenate([subs[a], subs[b]]))
+            ordered.append((a, b))
             n_large.append(subs[a].size)
             # two planes (by class, or by fit: crease pixels make a face look curved) merge only as one
             # plane, never as the plane pair a general quadric fits exactly
             planar.append((planar_class[a] and planar_class[b]) or (flats[a] and flats[b]))
-            if planar[-1] or unions[-1].size < 10:  # (fewer than 10 points: a plane, as in _quick_fits)
+            if planar[-1] or subs[a].size + subs[b].size < 10:  # (< 10 points: a plane, as in _quick_fits)
                 rms_all, rms_small = _plane_union_rms(parts[a], parts[b])
                 if rms_small <= 1.5 * thr:
                     out[i] = rms_all
@@ -1510,6 +1509,8 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
         retry = [j for j in range(len(todo))
                  if st.params.curved_planar_merge and planar[j] and not out[todo[j]] <= thr]
         if curved or retry:
+            # the unions' pixels (larger part first) are gathered only for the quadric fits
+            unions = {j: np.concatenate([subs[ordered[j][0]], subs[ordered[j][1]]]) for j in curved + retry}
             Pq, zq = _quick_fits([unions[j] for j in curved + retry], np.zeros(len(curved) + len(retry), bool), st)
             for j, z in zip(curved, zq, strict=False):
                 if _rms(z[n_large[j]:]) <= 1.5 * thr:
