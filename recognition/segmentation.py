@@ -60,7 +60,11 @@ What the simulated suites (mixed pixels, outliers, grazing dropouts, incidence-d
    (:func:`_split_plane_pairs`), one that no quadric fits either into the faces k-planes finds
    (:func:`_faces`), and a large curved patch along its axis where its radius profile bends (a pipe
    merged with its reducer under strong noise, :func:`_split_along_axis`).
-9. **Hoover-literal hygiene**: fragments under ``min_region_pixels`` join a bordering patch whose surface
+9. **Border reassignment** (:func:`_reassign`, decimated grids): a border pixel moves to the neighbouring patch whose
+   surface fits it clearly better, a few rounds with refits (tiles straddling a pipe and its reducer give
+   up the pixels of the other surface). Default suite: correct detection 0.705 -> 0.724, ``select``
+   accuracy 0.895 -> 0.913, for about 0.05 s per VGA frame.
+10. **Hoover-literal hygiene**: fragments under ``min_region_pixels`` join a bordering patch whose surface
    fits them; pixels with at most two 4-neighbours in their own patch are left unlabelled (mixed pixels
    and one-pixel slivers of other surfaces at corners: the metric counts a patch that wholly covers a
    one-pixel truth region as an under-segmentation).
@@ -232,6 +236,13 @@ class SegmentationParams:
     axis_split_pixels : int or None
         Curved patches of at least this many pixels are cut along their axis where the radius changes (a pipe
         merged with its reducer or elbow, see :func:`_split_along_axis`); None: never.
+    reassign_rounds : int
+        Rounds of border reassignment (:func:`_reassign`) before the final hygiene, on decimated grids (whose
+        blocks and tiles leave such borders); 0: none. Full-resolution grids have neither: on the real box
+        scans (245 x 276) it turned two warped OTH faces into CONE.
+    reassign_margin : float
+        A border pixel moves to a neighbouring patch only when its range residual to that patch's surface is
+        smaller, by this many sigma, than to its own (and within ``2 grow_k``).
     """
 
     window: int = 7
@@ -269,6 +280,8 @@ class SegmentationParams:
     max_noise_scale: float = 10.0
     curved_planar_merge: bool = True
     axis_split_pixels: int | None = 1500
+    reassign_rounds: int = 16
+    reassign_margin: float = 1.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.window, int | np.integer) or self.window < 3 or self.window % 2 == 0:
@@ -298,6 +311,10 @@ class SegmentationParams:
             raise ValueError(f"decimation must be >= 1 or None, got {self.decimation!r}")
         if not (np.isfinite(self.absorb_k) and self.absorb_k > 0):
             raise ValueError(f"absorb_k must be a positive finite number, got {self.absorb_k!r}")
+        if self.reassign_rounds < 0:
+            raise ValueError(f"reassign_rounds must be >= 0, got {self.reassign_rounds!r}")
+        if not (np.isfinite(self.reassign_margin) and self.reassign_margin >= 0):
+            raise ValueError(f"reassign_margin must be a finite number >= 0, got {self.reassign_margin!r}")
         if not (np.isfinite(self.max_noise_scale) and self.max_noise_scale >= 1):
             raise ValueError(f"max_noise_scale must be >= 1, got {self.max_noise_scale!r}")
         if self.connectivity not in (4, 8):
@@ -1827,6 +1844,8 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
             labels = _split_along_axis(labels, st_full, cur.normals.reshape(-1, 3), params)
     edges = _edge_image(shape, jump_h, jump_v)
     edges[crease] |= np.uint8(EdgeType.CREASE)
+    if d > 1 and params.reassign_rounds:
+        labels = _reassign(labels, st_full, jump_h, jump_v, params.reassign_rounds, params.reassign_margin)
     labels = _peel_weak(labels, params.min_region_pixels, jump_h, jump_v)
     labels, patches = _finalise(labels, st_full, params, declared.ravel())
     return Segmentation(labels, hk, cur.H, cur.K, cur.sigma_H, cur.sigma_K, cur.normals, edges, patches, scale)
@@ -2002,6 +2021,81 @@ def _peel_weak(labels: np.ndarray, min_pixels: int, jump_h: np.ndarray, jump_v: 
     peel[pairs[:, 0]] = True
     m = (labels >= 0) & peel[np.maximum(labels, 0)]
     return np.where(m & (same <= 2), -1, labels).astype(np.int32)
+
+
+def _reassign(labels: np.ndarray, st: _State, jump_h: np.ndarray, jump_v: np.ndarray, rounds: int,
+              margin: float, refit_pixels: int = 4000) -> np.ndarray:
+    """Move border pixels to the neighbouring patch whose surface fits them clearly better (returns new labels).
+
+    Tiles, blocks of the coarse grid and merges leave patches whose border runs a few pixels past the
+    surface's own (a tile straddling a pipe and its reducer, a pipe strip that took a row of its elbow). A
+    pixel linked (no jump) to another patch moves there when its range residual to that patch's surface is
+    within ``2 grow_k`` sigma and ``margin`` sigma smaller than to its own; the patches that changed are
+    refitted (those of more than ``refit_pixels`` pixels hardly move and are not) and the pixels next to the
+    moved ones tested again, for at most ``rounds`` rounds. Pixels near a crease fit both faces within the
+    margin and stay.
+    """
+    H, W = labels.shape
+    out = labels.copy()
+    flat = out.ravel()
+    n = int(flat.max()) + 1
+    if n < 2:
+        return out
+    thr = 2.0 * st.params.grow_k
+    valid = np.isfinite(st.S).reshape(H, W)
+    links = _neighbour_links((H, W), valid, jump_h, jump_v)
+    groups = _groups(out)
+    P = _fit_groups(groups, st, n, trim=thr)
+    steps = np.array([dr * W + dc for dr, dc, _ in links])
+    ok = np.stack([o.ravel() for _, _, o in links])  # (4, H*W) link allowed
+    # first candidates: labelled pixels with a linked neighbour of another patch
+    diff_h = (out[:, :-1] != out[:, 1:]) & ~jump_h & (out[:, :-1] >= 0) & (out[:, 1:] >= 0)
+    diff_v = (out[:-1, :] != out[1:, :]) & ~jump_v & (out[:-1, :] >= 0) & (out[1:, :] >= 0)
+    border = np.zeros((H, W), bool)
+    border[:, :-1] |= diff_h
+    border[:, 1:] |= diff_h
+    border[:-1, :] |= diff_v
+    border[1:, :] |= diff_v
+    cand = np.flatnonzero(border)
+    small = {k: v for k, v in groups.items() if v.size <= refit_pixels}
+    for _ in range(rounds):
+        if cand.size == 0:
+            break
+        nb = cand[None, :] + steps[:, None]
+        nl = np.where(ok[:, cand], flat[np.clip(nb, 0, H * W - 1)], -1)
+        own = flat[cand]
+        x, u, s = st.X[cand], st.U[cand], st.S[cand]
+        best_z = _pixel_residuals(P, own, x, u, s)
+        best_l = own.copy()
+        for k in range(len(steps)):
+            m = (nl[k] >= 0) & (nl[k] != own)
+            if not m.any():
+                continue
+            z = np.full(cand.size, np.inf)
+            z[m] = _pixel_residuals(P, nl[k, m], x[m], u[m], s[m])
+            b = (z + margin < best_z) & (z <= thr)
+            best_z[b] = z[b]
+            best_l[b] = nl[k, b]
+        mv = best_l != own
+        if not mv.any():
+            break
+        moved, src, dst = cand[mv], own[mv], best_l[mv]
+        flat[moved] = dst
+        # refit the small patches that lost or gained pixels (a large one hardly changes)
+        redo = {}
+        for lab in np.unique(np.concatenate([src, dst])).tolist():
+            if lab in small:
+                v = small[lab]
+                v = np.concatenate([v[~np.isin(v, moved[src == lab])], moved[dst == lab]])
+                small[lab] = redo[lab] = v
+        redo = {k: v for k, v in redo.items() if v.size}
+        if redo:
+            Pc = _fit_groups(redo, st, n, trim=thr)
+            keys = list(redo)
+            P[keys] = Pc[keys]
+        nxt = (moved[None, :] + steps[:, None])[ok[:, moved]]
+        cand = np.union1d(cand, nxt[flat[nxt] >= 0])
+    return out
 
 
 def _edge_image(shape, jump_h, jump_v) -> np.ndarray:

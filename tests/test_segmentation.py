@@ -664,3 +664,40 @@ def test_unique_pairs_equal_numpy_unique_rows(rows):
     want, want_counts = np.unique(pairs, axis=0, return_counts=True)
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(counts, want_counts)
+
+
+def test_border_pixels_on_the_wrong_face_move_to_the_face_they_lie_on():
+    """A label border four columns past a roof's crease: the columns of the other face that fit it clearly
+    better go back to it; no pixel leaves the face it lies on, and a right labelling is left alone."""
+    from recognition.segmentation import _reassign, _State
+
+    sigma = 2e-4
+    n1, n2 = np.array([1.0, 0, -1.0]), np.array([-1.0, 0, -1.0])
+    surfaces = [S.Surface(lambda d: _halfplane(d, n1, x_sign=-1), 1),
+                S.Surface(lambda d: _halfplane(d, n2, x_sign=1), 2)]
+    pts, _, ids = S.render(surfaces, CAM, sigma, np.random.default_rng(5))
+    valid = ids > 0
+    crease = int(np.flatnonzero((ids == 2).any(axis=0)).min())
+    right = np.where(valid, ids - 1, -1).astype(np.int32)
+    shifted = np.where(valid, (np.arange(CAM.width)[None, :] >= crease + 4).astype(np.int32), -1)
+    X = pts.reshape(-1, 3)
+    st = _State(X=X, U=X / np.linalg.norm(X, axis=1, keepdims=True), S=np.where(valid.ravel(), sigma, np.nan),
+                hk=np.ones(X.shape[0], np.int64), params=SegmentationParams())
+    no_jump_h = np.zeros((CAM.height, CAM.width - 1), bool)
+    no_jump_v = np.zeros((CAM.height - 1, CAM.width), bool)
+
+    out = _reassign(shifted, st, no_jump_h, no_jump_v, rounds=16, margin=1.0)
+    wrong_before = int((shifted != right).sum())
+    wrong_after = int((out != right).sum())
+    assert wrong_before == 4 * valid[:, crease].sum()
+    assert wrong_after <= wrong_before // 4  # at most the column at the crease, which fits both faces
+    assert not ((out != shifted) & (shifted == right)).any()  # nothing moved off its own face
+    assert np.array_equal(_reassign(right, st, no_jump_h, no_jump_v, rounds=16, margin=1.0), right)
+    assert np.array_equal(_reassign(shifted, st, no_jump_h, no_jump_v, rounds=0, margin=1.0), shifted)
+
+
+@pytest.mark.parametrize("field,value", [("reassign_rounds", -1), ("reassign_margin", float("nan")),
+                                         ("reassign_margin", -0.5)])
+def test_impossible_reassignment_parameters_are_refused(field, value):
+    with pytest.raises(ValueError, match=field):
+        SegmentationParams(**{field: value})
