@@ -54,6 +54,9 @@ def aggregate_segmentation(trials: list[dict[str, Any]]) -> dict[str, Any]:
     out["min_truth_pixels"] = trials[0].get("min_truth_pixels", 0)
     out["n_images"] = len(trials)
     out["n_truth_regions"] = int(sum(t.get("n_truth", 0) for t in trials))
+    causes = [t["missed_causes"] for t in trials if t.get("missed_causes")]
+    if causes:
+        out["missed_causes"] = {k: _mean([c.get(k) for c in causes]) for k in causes[0]}
     sweeps = [t["sweep"] for t in trials if t.get("sweep")]
     if sweeps:
         out["sweep"] = [{"tolerance": row["tolerance"],

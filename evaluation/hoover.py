@@ -50,6 +50,8 @@ __all__ = [
     "overlap_table",
     "hoover_score",
     "hoover_sweep",
+    "MISSED_CAUSES",
+    "missed_causes",
     "connected_truth_regions",
     "mean_scores",
     "DEFAULT_SWEEP",
@@ -294,6 +296,57 @@ def hoover_score(
         machine_class=m_final,
         truth_partners=tuple(t_partners),
     )
+
+
+MISSED_CAUSES: tuple[str, ...] = ("unlabelled", "split", "merged")
+"""Why a truth region was missed (:func:`missed_causes`)."""
+
+
+def missed_causes(machine_labels: np.ndarray, truth_labels: np.ndarray, score: HooverScore) -> dict[str, int]:
+    """Count the scored truth regions that ``score`` classifies as missed, by cause.
+
+    The cause comes from the machine region ``m`` with the largest overlap ``O`` with the missed region
+    ``g``. Both labels and ``score`` must come from the same images (``score = hoover_score(machine_labels,
+    truth_labels, ...)``). With ``T`` the score's tolerance:
+
+    - **merged**: ``O < T |m|``, so ``m`` also covers other surfaces;
+    - **unlabelled**: ``O`` plus the pixels of ``g`` that no machine region labels reach ``T |g|``. Labelling
+      them would have been enough;
+    - **split**: otherwise. ``g`` is spread over several machine regions that are not all inside it.
+
+    A region that no machine region touches is unlabelled.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> truth = np.zeros((10, 10), int)
+    >>> machine = np.where(np.arange(10)[None, :] < 7, 0, -1) * np.ones((10, 1), int)
+    >>> missed_causes(machine, truth, hoover_score(machine, truth))
+    {'unlabelled': 1, 'split': 0, 'merged': 0}
+    """
+    out = dict.fromkeys(MISSED_CAUSES, 0)
+    missed = [g for g, c in zip(score.truth_ids, score.truth_class, strict=True) if c == MISSED]
+    if not missed:
+        return out
+    m, g = _check_labels(machine_labels, truth_labels)
+    machine_ids, truth_ids, msize, gsize, pairs = overlap_table(m, g)
+    unlabelled = np.bincount(np.searchsorted(truth_ids, g[(g >= 0) & (m < 0)]), minlength=truth_ids.size)
+    T = score.tolerance
+    for gid in missed:
+        k = int(np.searchsorted(truth_ids, gid))
+        rows = pairs[pairs[:, 1] == k]
+        if rows.size == 0:
+            out["unlabelled"] += 1
+            continue
+        best = rows[np.argmax(rows[:, 2])]
+        overlap = float(best[2])
+        if overlap < T * msize[best[0]]:
+            out["merged"] += 1
+        elif overlap + unlabelled[k] >= T * gsize[k]:
+            out["unlabelled"] += 1
+        else:
+            out["split"] += 1
+    return out
 
 
 def hoover_sweep(

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.hoover import DEFAULT_SWEEP, connected_truth_regions, hoover_score, hoover_sweep
+from evaluation.hoover import DEFAULT_SWEEP, connected_truth_regions, hoover_score, hoover_sweep, missed_causes
 from scenes.features import Cone, Cylinder, Sphere
 from scenes.model import SceneModel
 from sensors.range_image import FLAG_MIXED, FLAG_OUTLIER, ScanTruth
@@ -36,6 +36,9 @@ def segmentation_section(labels: np.ndarray, truth: ScanTruth, valid: np.ndarray
                float(v) if isinstance(v, float | np.floating) else v) for k, v in score.as_dict().items()}
     out["min_truth_pixels"] = MIN_TRUTH_PIXELS
     out["n_truth"] = int(score.n_truth)
+    # the missed rate split by cause (they sum to it)
+    causes = missed_causes(labels, regions, score)
+    out["missed_causes"] = {k: (v / score.n_truth if score.n_truth else None) for k, v in causes.items()}
     out["n_machine"] = int(score.n_machine)
     out["sweep"] = [{"tolerance": float(t), **{k: _finite(getattr(s, k)) for k in
                                                 ("correct_detection_rate", "over_rate", "under_rate", "missed_rate",

@@ -289,6 +289,17 @@ def segmentation_section(run: RunData) -> Section:
                          Cell(NOT_BUILT, "missing") for k in HOOVER_RATES]) for g, sec in groups.items()]
     if len(grows) > 1:
         blocks.append(Table(("group", *HOOVER_HEAD), tuple(grows), caption="Per group, core method"))
+    causes = {name: _get(sec, "segmentation", "missed_causes") for name, sec in
+              [("all", run.summary), *groups.items()]}
+    causes = {k: v for k, v in causes.items() if v}
+    if causes:
+        keys = list(next(iter(causes.values())))
+        blocks.append(Table(("core method", *keys), tuple((Cell(g), *[Cell(fmt(c.get(k)), "num") for k in keys])
+                                                          for g, c in causes.items()),
+                            caption="Missed truth regions by cause (fraction of regions; they sum to the missed "
+                                    "rate): merged, the largest machine region on it also covers other surfaces; "
+                                    "unlabelled, labelling its unlabelled pixels would have been enough; split, "
+                                    "the rest"))
     return Section("segmentation", "Segmentation", blocks)
 
 

@@ -34,3 +34,19 @@ def test_classification_summary_carries_the_radius_figures():
     agg = aggregate_classification([trial])
     assert agg["radius"]["CYL"]["n"] == 1  # the 50-pixel patch is below the size the scores count
     assert agg["radius"]["SPH"] is None
+
+
+def test_missed_causes_are_averaged_over_images_like_the_rates():
+    from evaluation.aggregate import aggregate_segmentation
+
+    def image(missed, causes):
+        rates = {"correct_detection_rate": None if missed is None else 1.0 - missed, "over_rate": 0.0,
+                 "under_rate": 0.0, "missed_rate": missed, "noise_rate": 0.0}
+        return {**rates, "tolerance": 0.8, "n_truth": 4, "missed_causes": causes}
+
+    a = image(0.5, {"unlabelled": 0.25, "split": 0.0, "merged": 0.25})
+    b = image(0.25, {"unlabelled": 0.0, "split": 0.25, "merged": 0.0})
+    c = image(None, {"unlabelled": None, "split": None, "merged": None})  # nothing to count
+    out = aggregate_segmentation([a, b, c])
+    assert out["missed_causes"] == {"unlabelled": 0.125, "split": 0.125, "merged": 0.125}
+    assert sum(out["missed_causes"].values()) == out["missed_rate"]

@@ -19,6 +19,7 @@ from evaluation.hoover import (
     hoover_score,
     hoover_sweep,
     mean_scores,
+    missed_causes,
     overlap_table,
 )
 
@@ -239,3 +240,31 @@ def test_hoover_consistency_properties(machine, truth, tol, seed):
     assert s2.truth_class == s.truth_class
     # the truth scored against itself is perfect
     assert hoover_score(truth, truth, tol).n_correct == hoover_score(truth, truth, tol).n_truth
+    # every missed region has exactly one cause
+    assert sum(missed_causes(machine, truth, s).values()) == s.n_missed
+
+
+def _strips(widths: list[int], rows: int = 10) -> np.ndarray:
+    """A label image of vertical strips ``widths`` wide, labelled 0, 1, 2, ... (-1 for a width given < 0)."""
+    cols = np.concatenate([np.full(abs(w), k if w > 0 else -1) for k, w in enumerate(widths)])
+    return np.tile(cols, (rows, 1))
+
+
+@pytest.mark.parametrize("machine_widths,cause", [
+    # truth: g = columns 0-9, g2 = columns 10-49 (detected correctly in every case)
+    ([7, -3, 40], "unlabelled"),  # 70 % of g labelled, the rest not: labelling it would do
+    ([6, 10, 34], "split"),  # g in two pieces, the smaller one merged with 6 columns of g2
+    ([16, 34], "merged"),  # one region over g and 6 columns of g2: not mostly inside g
+    ([-10, 40], "unlabelled"),  # no machine pixel on g at all
+])
+def test_missed_causes_on_hand_made_images(machine_widths, cause):
+    truth = _strips([10, 40])
+    machine = _strips(machine_widths)
+    s = hoover_score(machine, truth, 0.8)
+    assert _cls(s, 0) == MISSED and _cls(s, 1) == CORRECT
+    assert missed_causes(machine, truth, s) == {k: int(k == cause) for k in ("unlabelled", "split", "merged")}
+
+
+def test_missed_causes_are_empty_without_misses():
+    truth = _strips([10, 20])
+    assert missed_causes(truth, truth, hoover_score(truth, truth)) == {"unlabelled": 0, "split": 0, "merged": 0}

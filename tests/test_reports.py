@@ -43,7 +43,10 @@ def _segmentation(cdr: float) -> dict:
              "noise_rate": 0.05}
     sweep = [{"tolerance": t, **{k: (v * (1.2 - t) if k == "correct_detection_rate" else v) for k, v in rates.items()}}
              for t in SWEEP_T]
-    return {**rates, "tolerance": 0.8, "min_truth_pixels": 200, "n_truth": 10, "n_machine": 12, "sweep": sweep}
+    missed = rates["missed_rate"]
+    causes = {"unlabelled": 0.5 * missed, "split": 0.0, "merged": 0.5 * missed}
+    return {**rates, "tolerance": 0.8, "min_truth_pixels": 200, "n_truth": 10, "n_machine": 12, "sweep": sweep,
+            "missed_causes": causes}
 
 
 def _patches(n_right: int, n_wrong: int, paper: bool) -> list[dict]:
@@ -180,6 +183,11 @@ def test_present_pose_and_change_are_tabled_and_plotted(full_report):
     assert f"{summary['pose']['success_rate']:.3f}" in html
     assert f"{summary['change']['macro_f1']:.3f}" in html
     assert "core, initial" in html  # before-ICP row of the pose table
+    # the missed rate split by cause, from the summary
+    causes = summary["segmentation"]["missed_causes"]
+    assert sum(causes.values()) == pytest.approx(summary["segmentation"]["missed_rate"])
+    table = re.search(r"Missed truth regions by cause.*?</table>", html, re.S).group(0)
+    assert f"{causes['merged']:.3f}" in table
 
 
 def test_sweep_groups_get_a_metric_vs_value_plot(tmp_path):
