@@ -176,11 +176,12 @@ class RayCaster:
 
     # -- casting -------------------------------------------------------------------------------------
     def cast(self, origin: np.ndarray, R_world_sensor: np.ndarray, bundle: RayBundle, cutoff: float,
-             normals: bool = True) -> Hits:
+             normals: bool = True, exclude: np.ndarray | None = None) -> Hits:
         """Cast every ray of ``bundle`` from ``origin`` (world, (3,)) with the sensor rotation (3, 3).
 
         Returns hits in image order (flattened). ``cutoff`` (metres): geoms whose bounding volume lies
-        entirely beyond it are ignored (hits beyond it may still be reported).
+        entirely beyond it are ignored (hits beyond it may still be reported). ``exclude``: (G,) bool, geoms
+        the rays pass through.
         """
         origin = np.ascontiguousarray(origin, dtype=np.float64)
         n = bundle.n_rays
@@ -193,10 +194,14 @@ class RayCaster:
         saved = groups.copy()
         try:
             if len(bundle.starts) == 2 and self.tile_px <= 0:
-                mujoco.mj_multiRay(m, d, origin, dirs_world.ravel(), None, True, -1, gid, dist,
-                                   None if nrm is None else nrm.ravel(), n, float(cutoff))
+                if exclude is not None:
+                    groups[:] = exclude
+                mujoco.mj_multiRay(m, d, origin, dirs_world.ravel(), None if exclude is None else _INCLUDE_GROUP0,
+                                   True, -1, gid, dist, None if nrm is None else nrm.ravel(), n, float(cutoff))
             else:
                 admit = self.tile_geoms(origin, R_world_sensor, bundle, cutoff)
+                if exclude is not None:
+                    admit &= ~exclude[None, :]
                 for t in range(len(bundle.starts) - 1):
                     a, b = int(bundle.starts[t]), int(bundle.starts[t + 1])
                     sel = admit[t]
@@ -251,6 +256,24 @@ class RayCaster:
         return Hits(dist, gid, nrm)
 
     # -- free space ------------------------------------------------------------------------------------
+    def containing(self, point: np.ndarray, n_dirs: int = 162) -> np.ndarray:
+        """Geoms whose solid contains ``point`` (world, (3,)), as a (G,) bool mask: primitives that rays from
+        the point hit from inside, mesh features by their own inside test."""
+        p = np.ascontiguousarray(point, dtype=np.float64)
+        dirs = fibonacci_sphere(n_dirs)
+        gid = np.empty(n_dirs, dtype=np.int32)
+        dist = np.empty(n_dirs)
+        nrm = np.empty(3 * n_dirs)
+        mujoco.mj_multiRay(self.model, self.data, p, dirs.ravel(), None, True, -1, gid, dist, nrm, n_dirs, 1e6)
+        hit = gid >= 0
+        facing = np.einsum("ij,ij->i", nrm.reshape(-1, 3), dirs)
+        out = np.zeros(self.model.ngeom, dtype=bool)
+        out[gid[hit & (facing > 1e-6) & ~self.is_mesh[np.maximum(gid, 0)]]] = True
+        for g, feature in self.mesh_feature.items():
+            if inside_solid(feature, p[None, :])[0]:
+                out[g] = True
+        return out
+
     def probe(self, point: np.ndarray, n_dirs: int = 162) -> tuple[float, str | None]:
         """Clearance and containment at ``point`` (world, (3,)).
 

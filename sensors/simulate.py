@@ -100,8 +100,9 @@ class Simulator:
             return self.caster.bundle(key, self.directions(sensor, offset).reshape(*sensor.shape, 3))
 
     def _cast(self, sensor: SensorModel, origin: np.ndarray, R: np.ndarray, offset=(0.0, 0.0),
-              normals: bool = True) -> Hits:
-        hits = self.caster.cast(origin, R, self._bundle(sensor, offset), sensor.max_range, normals=normals)
+              normals: bool = True, exclude: np.ndarray | None = None) -> Hits:
+        hits = self.caster.cast(origin, R, self._bundle(sensor, offset), sensor.max_range, normals=normals,
+                                exclude=exclude)
         return self.caster.refine_meshes(origin, R, self.directions(sensor, offset), hits)
 
     def check_pose(self, T_world_sensor: np.ndarray) -> np.ndarray:
@@ -125,11 +126,17 @@ class Simulator:
         """Distance (metres) from ``position`` to the nearest geometry along 162 directions (0 if inside)."""
         return self.caster.probe(np.asarray(position, dtype=np.float64))[0]
 
-    def truth_image(self, sensor: SensorModel, T_world_sensor: np.ndarray, check: bool = True
-                    ) -> tuple[np.ndarray, np.ndarray]:
-        """Noise-free centre-ray truth: ``(true_range (H, W), surface_id (H, W) int32)``, within ``max_range``."""
+    def truth_image(self, sensor: SensorModel, T_world_sensor: np.ndarray, check: bool = True,
+                    through_containing: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Noise-free centre-ray truth: ``(true_range (H, W), surface_id (H, W) int32)``, within ``max_range``.
+
+        ``through_containing`` (with ``check=False``): the rays pass through geometry that contains the
+        sensor, instead of hitting it from inside.
+        """
         T = self.check_pose(T_world_sensor) if check else np.asarray(T_world_sensor, dtype=np.float64)
-        hits = self._cast(sensor, T[:3, 3].copy(), T[:3, :3], normals=True)
+        exclude = self.caster.containing(T[:3, 3]) if through_containing else None
+        hits = self._cast(sensor, T[:3, 3].copy(), T[:3, :3], normals=True,
+                          exclude=exclude if exclude is not None and exclude.any() else None)
         surface = surface_of_hits(self.exported, hits.geom_id, hits.normal_world)
         beyond = ~(hits.dist <= sensor.max_range)
         r = np.where(beyond, np.nan, hits.dist)

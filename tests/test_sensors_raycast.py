@@ -201,3 +201,31 @@ def test_beyond_max_range_is_dropped_from_image_and_truth():
     assert far.any() and (~far).any()
     assert not s.valid[far].any() and s.valid[~far].all()
     assert (t.surface_id[far] == -1).all() and np.isnan(t.true_range[far]).all()
+
+
+@pytest.mark.parametrize("tile_px", [32, 0])
+def test_a_prediction_from_inside_an_object_sees_through_it(tile_px):
+    """A model object containing the sensor (a tank the scene no longer has) is passed through by the
+    rays of a prediction, which see the wall behind it; hit from inside otherwise. Verification predicts
+    that way (recognition.verify.predict)."""
+    from recognition.verify import predict
+
+    wall = Plane("wall.yn", centre=[0, 3, 1], normal=[0, -1, 0], u_axis=[1, 0, 0], half_size=(5, 5))
+    sc = SceneModel("s", (Object("tank", "tank", (Sphere("ball", centre=[0, 0, 1], radius=0.5),)),
+                          Object("wall", "wall", (wall,))))
+    sim = Simulator.from_scene(sc, tile_px=tile_px)
+    T = look_at([0, 0, 1], [0, 3, 1])
+    cam = exact().model
+    ball = sim.exported.geom_names.index(next(n for n in sim.exported.geom_names if "ball" in n))
+    assert np.flatnonzero(sim.caster.containing(T[:3, 3])).tolist() == [ball]
+    assert not sim.caster.containing(np.array([0.0, -2.0, 1.0])).any()
+    r_inside, _ = sim.truth_image(cam, T, check=False)
+    r_through, sid = sim.truth_image(cam, T, check=False, through_containing=True)
+    assert centre(r_inside) == pytest.approx(0.5, abs=1e-6)  # the sphere's inside
+    assert centre(r_through) == pytest.approx(3.0, abs=1e-6)  # the wall
+    assert sim.exported.surfaces[centre(sid)].feature_id == "wall.yn"
+    np.testing.assert_array_equal(predict(sim, cam, T).range, r_through)
+    # outside every object both agree
+    T_out = look_at([0, -2, 1], [0, 3, 1])
+    np.testing.assert_array_equal(sim.truth_image(cam, T_out, check=False)[0],
+                                  sim.truth_image(cam, T_out, check=False, through_containing=True)[0])
