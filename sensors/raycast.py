@@ -256,9 +256,9 @@ class RayCaster:
         return Hits(dist, gid, nrm)
 
     # -- free space ------------------------------------------------------------------------------------
-    def containing(self, point: np.ndarray, n_dirs: int = 162) -> np.ndarray:
-        """Geoms whose solid contains ``point`` (world, (3,)), as a (G,) bool mask: primitives that rays from
-        the point hit from inside, mesh features by their own inside test."""
+    def _from_point(self, point: np.ndarray, n_dirs: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rays from ``point`` over the sphere: (geom ids, distances, whether each hit is from inside a
+        primitive geom)."""
         p = np.ascontiguousarray(point, dtype=np.float64)
         dirs = fibonacci_sphere(n_dirs)
         gid = np.empty(n_dirs, dtype=np.int32)
@@ -267,10 +267,17 @@ class RayCaster:
         mujoco.mj_multiRay(self.model, self.data, p, dirs.ravel(), None, True, -1, gid, dist, nrm, n_dirs, 1e6)
         hit = gid >= 0
         facing = np.einsum("ij,ij->i", nrm.reshape(-1, 3), dirs)
+        return gid, np.where(hit, dist, np.inf), hit & (facing > 1e-6) & ~self.is_mesh[np.maximum(gid, 0)]
+
+    def containing(self, point: np.ndarray, n_dirs: int = 162) -> np.ndarray:
+        """Geoms whose solid contains ``point`` (world, (3,)), as a (G,) bool mask: primitives that rays from
+        the point hit from inside, mesh features by their own inside test."""
+        gid, _, from_inside = self._from_point(point, n_dirs)
         out = np.zeros(self.model.ngeom, dtype=bool)
-        out[gid[hit & (facing > 1e-6) & ~self.is_mesh[np.maximum(gid, 0)]]] = True
+        out[gid[from_inside]] = True
+        p = np.asarray(point, dtype=np.float64)[None, :]
         for g, feature in self.mesh_feature.items():
-            if inside_solid(feature, p[None, :])[0]:
+            if inside_solid(feature, p)[0]:
                 out[g] = True
         return out
 
@@ -281,22 +288,14 @@ class RayCaster:
         the sphere (metres, inf if nothing is hit) and the name of the geom or feature containing the point
         (None when in free space).
         """
-        p = np.ascontiguousarray(point, dtype=np.float64)
-        dirs = fibonacci_sphere(n_dirs)
-        gid = np.empty(n_dirs, dtype=np.int32)
-        dist = np.empty(n_dirs)
-        nrm = np.empty(3 * n_dirs)
-        mujoco.mj_multiRay(self.model, self.data, p, dirs.ravel(), None, True, -1, gid, dist, nrm, n_dirs, 1e6)
-        hit = gid >= 0
-        clearance = float(dist[hit].min()) if hit.any() else math.inf
-        facing = np.einsum("ij,ij->i", nrm.reshape(-1, 3), dirs)
-        from_inside = hit & (facing > 1e-6) & ~self.is_mesh[np.maximum(gid, 0)]
+        gid, dist, from_inside = self._from_point(point, n_dirs)
         if from_inside.any():
             return 0.0, self.exported.geom_names[int(gid[np.flatnonzero(from_inside)[0]])]
+        p = np.asarray(point, dtype=np.float64)[None, :]
         for feature in self.mesh_feature.values():
-            if inside_solid(feature, p[None, :])[0]:
+            if inside_solid(feature, p)[0]:
                 return 0.0, feature.id
-        return clearance, None
+        return float(dist.min()), None
 
 
 def matmul_rows(a: np.ndarray, b: np.ndarray, max_elements: int = 32768) -> np.ndarray:
