@@ -271,15 +271,20 @@ class RayCaster:
 
     def containing(self, point: np.ndarray, n_dirs: int = 162) -> np.ndarray:
         """Geoms whose solid contains ``point`` (world, (3,)), as a (G,) bool mask: primitives that rays from
-        the point hit from inside, mesh features by their own inside test."""
-        gid, _, from_inside = self._from_point(point, n_dirs)
+        the point hit from inside, mesh features by their own inside test. Only geoms whose bounding spheres
+        hold the point are tested (none, the usual case for a sensor in free space: no rays are cast)."""
+        p = np.asarray(point, dtype=np.float64)
+        near = np.logical_or.reduceat(np.linalg.norm(self.sphere_centre - p, axis=1) <= self.sphere_radius,
+                                      self.sphere_starts[:-1])
         out = np.zeros(self.model.ngeom, dtype=bool)
+        if not near.any():
+            return out
+        gid, _, from_inside = self._from_point(p, n_dirs)
         out[gid[from_inside]] = True
-        p = np.asarray(point, dtype=np.float64)[None, :]
         for g, feature in self.mesh_feature.items():
-            if inside_solid(feature, p)[0]:
+            if near[g] and inside_solid(feature, p[None, :])[0]:
                 out[g] = True
-        return out
+        return out & near
 
     def probe(self, point: np.ndarray, n_dirs: int = 162) -> tuple[float, str | None]:
         """Clearance and containment at ``point`` (world, (3,)).
