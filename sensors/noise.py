@@ -112,14 +112,11 @@ class NoiseModel:
         if self.grazing_end < self.grazing_start:
             raise ValueError(f"grazing_end ({math.degrees(self.grazing_end):g} deg) must be >= grazing_start "
                              f"({math.degrees(self.grazing_start):g} deg)")
-        if isinstance(self.footprint_rays, bool) or int(self.footprint_rays) != self.footprint_rays \
-                or self.footprint_rays < 1:
-            raise ValueError(f"footprint_rays must be an integer >= 1, got {self.footprint_rays!r}")
-        object.__setattr__(self, "footprint_rays", int(self.footprint_rays))
-        if isinstance(self.matching_window_px, bool) or int(self.matching_window_px) != self.matching_window_px \
-                or self.matching_window_px < 1:
-            raise ValueError(f"matching_window_px must be an integer >= 1, got {self.matching_window_px!r}")
-        object.__setattr__(self, "matching_window_px", int(self.matching_window_px))
+        for name in ("footprint_rays", "matching_window_px"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or int(value) != value or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+            object.__setattr__(self, name, int(value))
         if not 0.0 < self.min_return_fraction <= 1.0:
             raise ValueError(f"min_return_fraction must be in (0, 1], got {self.min_return_fraction}")
         if self.outlier_rate > 1:
