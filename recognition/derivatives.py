@@ -36,6 +36,7 @@ __all__ = [
     "SurfaceDerivatives",
     "jump_threshold",
     "jump_pairs",
+    "ray_angles",
     "norm3",
     "savgol_kernels",
     "window_design",
@@ -107,8 +108,15 @@ def jump_threshold(
     return k_sigma * np.sqrt(sigma_a**2 + sigma_b**2) + tan_max_incidence * 0.5 * (range_a + range_b) * angle
 
 
+def ray_angles(rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Angles (radians, chord approximation ``|a - b|``) between the rays of horizontally (H, W - 1) and
+    vertically (H - 1, W) adjacent pixels; NaN next to a hole."""
+    return norm3(rays[:, :-1] - rays[:, 1:]), norm3(rays[:-1] - rays[1:])
+
+
 def jump_pairs(
-    rng: np.ndarray, sigma: np.ndarray, rays: np.ndarray, k_sigma: float, tan_max_incidence: float
+    rng: np.ndarray, sigma: np.ndarray, rays: np.ndarray, k_sigma: float, tan_max_incidence: float,
+    angles: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Jump (depth discontinuity) flags between horizontally and vertically adjacent pixels.
 
@@ -119,6 +127,8 @@ def jump_pairs(
     rays : ndarray of shape (H, W, 3), unit ray directions (NaN where no return)
     k_sigma, tan_max_incidence : float
         See :func:`jump_threshold`.
+    angles : (ndarray, ndarray), optional
+        :func:`ray_angles` of ``rays``, when already at hand.
 
     Returns
     -------
@@ -127,13 +137,13 @@ def jump_pairs(
     jump_v : ndarray of shape (H - 1, W), bool
         The same for (i, j) and (i + 1, j).
     """
+    angles = ray_angles(rays) if angles is None else angles
     out = []
-    for sl_a, sl_b in (
+    for (sl_a, sl_b), ang in zip((
         ((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
         ((slice(None, -1), slice(None)), (slice(1, None), slice(None))),
-    ):
+    ), angles, strict=True):
         ra, rb = rng[sl_a], rng[sl_b]
-        ang = norm3(rays[sl_a] - rays[sl_b])
         thr = jump_threshold(ra, rb, sigma[sl_a], sigma[sl_b], ang, k_sigma, tan_max_incidence)
         with np.errstate(invalid="ignore"):
             out.append(np.abs(ra - rb) > thr)  # NaN compares False: no jump next to a hole
@@ -224,6 +234,7 @@ def quadratic_derivatives(
     min_support: int | None = None,
     max_variance_ratio: float = 25.0,
     chunk: int = 8192,
+    jumps: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> SurfaceDerivatives:
     """Masked local quadratic fits of ``P(u, v)``: first and second derivatives that do not cross jumps.
 
@@ -242,6 +253,8 @@ def quadratic_derivatives(
         too ill-conditioned: its derivatives are NaN.
     chunk : int
         Pixels per batch of the masked path (bounds memory).
+    jumps : (ndarray, ndarray), optional
+        :func:`jump_pairs` of the image with ``jump_k`` and ``jump_tan``, when already at hand.
 
     Returns
     -------
@@ -259,7 +272,7 @@ def quadratic_derivatives(
     if H < window or W < window:
         full = np.zeros((H, W), dtype=bool)
     else:
-        jump_h, jump_v = jump_pairs(rng, sigma, rays, jump_k, jump_tan)
+        jump_h, jump_v = jump_pairs(rng, sigma, rays, jump_k, jump_tan) if jumps is None else jumps
         full = clean_windows(valid, jump_h, jump_v, window)
     if full.any():
         Pu, Pv, Puu, Puv, Pvv = _full_window_derivatives(np.where(valid[..., None], points, 0.0), window)
@@ -345,11 +358,16 @@ def _masked_fits(points, sigma, rng, rays, valid, masked, window, jump_k, jump_t
     XX = (X[:, :, None] * X[:, None, :]).reshape(len(X), 36)
     pad = ((h, h), (h, h))
     rng_p = np.pad(np.where(valid, rng, np.nan), pad, constant_values=np.nan).ravel()
-    sig_p = np.pad(sigma, pad, constant_values=np.nan).ravel()
-    pts_p = [np.pad(points[..., k], pad, constant_values=np.nan).ravel() for k in range(3)]
+    sig2_p = np.pad(sigma, pad, constant_values=np.nan).ravel() ** 2
+    # coordinates with 0 for no return: a window's pixels outside its mask are multiplied by 0
+    pts_p = [np.pad(np.where(valid, points[..., k], 0.0), pad).ravel() for k in range(3)]
     alpha = _pixel_angle(rays)
     ang = alpha * np.hypot(du, dv)[None, :]
     offs = (dv * Wp + du)[None, :]
+    # window pixel -> its row (first ``window`` columns) and column (last ``window``): support counts by gemm
+    lines = np.zeros((window * window, 2 * window))
+    lines[np.arange(window * window), dv + h] = 1.0
+    lines[np.arange(window * window), window + du + h] = 1.0
     rows, cols = np.nonzero(masked)
     centre_all = (rows + h) * Wp + (cols + h)
     J = np.array([2.0, 1.0, 2.0])
@@ -359,26 +377,25 @@ def _masked_fits(points, sigma, rng, rays, valid, masked, window, jump_k, jump_t
         flat = centre_all[start:start + chunk][:, None] + offs
         rc = rng[r, c][:, None]
         rng_w = rng_p.take(flat)
-        thr = jump_k * np.sqrt(sigma[r, c][:, None] ** 2 + sig_p.take(flat) ** 2) + jump_tan * rc * ang
+        thr = jump_k * np.sqrt(sigma[r, c][:, None] ** 2 + sig2_p.take(flat)) + jump_tan * rc * ang
         with np.errstate(invalid="ignore"):
-            m = np.abs(rng_w - rc) <= thr  # NaN (no return) compares False
-        mw = m.reshape(len(r), window, window)
+            mf = (np.abs(rng_w - rc) <= thr).astype(np.float64)  # NaN (no return) compares False
+        per_line = (mf @ lines) > 0
         enough = (
-            (m.sum(axis=1) >= min_support)
-            & (mw.any(axis=1).sum(axis=1) >= 3)
-            & (mw.any(axis=2).sum(axis=1) >= 3)
+            (mf.sum(axis=1) >= min_support)
+            & (per_line[:, :window].sum(axis=1) >= 3)
+            & (per_line[:, window:].sum(axis=1) >= 3)
         )
         if not enough.any():
             continue
-        r, c, m, flat = r[enough], c[enough], m[enough], flat[enough]
-        mf = m.astype(np.float64)
+        r, c, mf, flat = r[enough], c[enough], mf[enough], flat[enough]
         M = (mf @ XX).reshape(len(r), 6, 6)
         M += np.eye(6) * (1e-12 * np.trace(M, axis1=1, axis2=2))[:, None, None]
         inv = spd_inverse(M)
         # fit P - P(centre): the constant stays ~0, so the tiny ridge does not bias the slopes
         centre = points[r, c]
         rhs = np.stack(
-            [np.where(m, pts_p[k].take(flat) - centre[:, k:k + 1], 0.0) @ X for k in range(3)], axis=-1
+            [((pts_p[k].take(flat) - centre[:, k:k + 1]) * mf) @ X for k in range(3)], axis=-1
         )  # (n, 6, 3)
         beta = inv @ rhs  # (n, 6, 3)
         c2 = inv[:, 3:6, 3:6] * J[None, :, None] * J[None, None, :]

@@ -83,7 +83,7 @@ import scipy.ndimage as ndi
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from recognition.derivatives import clean_windows, jump_pairs, norm3, quadratic_derivatives, savgol_kernels
+from recognition.derivatives import clean_windows, jump_pairs, norm3, quadratic_derivatives, ray_angles, savgol_kernels
 from recognition.quadric import MONOMIAL_GRADIENT, quadric_matrices, taubin_fit
 from recognition.surface_fit import (
     _MIN_GRAZING,
@@ -516,7 +516,8 @@ def noise_scale(rng: np.ndarray, sigma: np.ndarray, valid: np.ndarray, jump_h: n
 # --------------------------------------------------------------------------------------------- curvature
 
 
-def curvature_images(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams) -> CurvatureImages:
+def curvature_images(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams,
+                     jumps: tuple[np.ndarray, np.ndarray] | None = None) -> CurvatureImages:
     """Mean and Gaussian curvature of a perspective point image, with propagated noise.
 
     Parameters
@@ -524,6 +525,9 @@ def curvature_images(points: np.ndarray, sigma: np.ndarray, params: Segmentation
     points : ndarray of shape (H, W, 3), metres, sensor frame, NaN where no return
     sigma : ndarray of shape (H, W), metres, range sigma along the ray (already floored)
     params : SegmentationParams
+    jumps : (ndarray, ndarray), optional
+        The image's :func:`~recognition.derivatives.jump_pairs` (``params.jump_k``, ``params.jump_tan``), when
+        already at hand.
 
     Returns
     -------
@@ -531,7 +535,7 @@ def curvature_images(points: np.ndarray, sigma: np.ndarray, params: Segmentation
         ``H`` (1/m) with the normal facing the sensor, ``K`` (1/m²), their sigmas, unit normals (H, W, 3),
         and ``sigma_normal`` (H, W), radians, the propagated angular sigma of the normal.
     """
-    der = quadratic_derivatives(points, sigma, params.window, params.jump_k, params.jump_tan)
+    der = quadratic_derivatives(points, sigma, params.window, params.jump_k, params.jump_tan, jumps=jumps)
     Pu, Pv = der.Pu, der.Pv
     E = np.einsum("ijk,ijk->ij", Pu, Pu)
     F = np.einsum("ijk,ijk->ij", Pu, Pv)
@@ -867,11 +871,14 @@ def _groups(labels: np.ndarray) -> dict[int, np.ndarray]:
     if idx.size == 0:
         return {}
     lab = flat[idx]
+    if lab.max() < 2**16:
+        lab = lab.astype(np.uint16)  # numpy's stable sort of 16-bit integers is a radix sort
     order = np.argsort(lab, kind="stable")
     idx, lab = idx[order], lab[order]
     cuts = np.flatnonzero(np.diff(lab)) + 1
-    starts = np.concatenate([[0], cuts])
-    return {int(lab[s]): part for s, part in zip(starts, np.split(idx, cuts), strict=True)}
+    starts = np.concatenate([[0], cuts]).tolist()
+    ends = [*starts[1:], idx.size]
+    return {int(lab[s]): idx[s:e] for s, e in zip(starts, ends, strict=True)}
 
 
 def _subsample(idx: np.ndarray, n_max: int) -> np.ndarray:
@@ -985,6 +992,10 @@ def _plane_fits(X, U, S, gid, starts, cnt):
     return P, np.where(np.isfinite(z), z, np.inf)
 
 
+# Taubin's normalisation N9 = sum_k G_k' S4 G_k (G_k = MONOMIAL_GRADIENT[k]) as a linear map of S4's 16 entries
+_TAUBIN_MAP = np.einsum("kmi,knj->mnij", MONOMIAL_GRADIENT, MONOMIAL_GRADIENT)[:, :, :9, :9].reshape(16, 81)
+
+
 def _quadric_fits(X, U, S, gid, starts, cnt):
     """Taubin quadrics of the groups (unit-norm algebraic fit where Taubin's is undefined), in normalised
     coordinates per group: parameters (G, 10) in metres and per-point ray z-residuals (N,)."""
@@ -996,8 +1007,8 @@ def _quadric_fits(X, U, S, gid, starts, cnt):
     y = d / scale[gid, None]
     D = quadric_monomials(y)
     M = _group_grams(D, starts, cnt)
-    S4 = _group_grams(np.column_stack([y, np.ones(len(y))]), starts, cnt)
-    N9 = np.einsum("kmi,gmn,knj->gij", MONOMIAL_GRADIENT, S4, MONOMIAL_GRADIENT)[:, :9, :9]
+    S4 = M[:, 6:, 6:]  # the moments of (x, y, z, 1), the last four monomials
+    N9 = (S4.reshape(G, 16) @ _TAUBIN_MAP).reshape(G, 9, 9)
     tr = np.trace(M, axis1=1, axis2=2)
     ev = np.linalg.eigvalsh(M / np.where(tr > 0, tr, 1.0)[:, None, None])
     evn = np.linalg.eigvalsh(N9)
@@ -1054,13 +1065,13 @@ def _quick_fits(idx_list: list[np.ndarray], planar: np.ndarray, st: _State):
         gid = np.repeat(np.arange(sel.size), cnt)
         starts = np.concatenate([[0], np.cumsum(cnt)[:-1]])
         try:
-            Pk, z = fitter(st.X[ix], st.U[ix], st.S[ix], gid, starts, cnt)
+            Pk, z = fitter(st.X.take(ix, axis=0), st.U.take(ix, axis=0), st.S.take(ix), gid, starts, cnt)
         except np.linalg.LinAlgError:  # a numerically singular group: fit them one by one
             fits = [_quick_fit(st.X[idx_list[k]], st.U[idx_list[k]], st.S[idx_list[k]], flag) for k in sel]
             Pk, z = np.array([f[0] for f in fits]), np.concatenate([f[1] for f in fits])
         P[sel] = Pk
-        for j, part in zip(sel, np.split(z, np.cumsum(cnt)[:-1]), strict=True):
-            zs[j] = part
+        for j, s0, n in zip(sel.tolist(), starts.tolist(), cnt.tolist(), strict=True):
+            zs[j] = z[s0:s0 + n]
     for k in np.flatnonzero(cnt_all == 0):
         zs[k] = np.zeros(0)
     return P, zs
@@ -1795,21 +1806,23 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
     params = SegmentationParams() if params is None else params
     pts, sig = _check_inputs(points, sigma)
     shape = sig.shape
-    valid = np.isfinite(pts).all(axis=-1) & np.isfinite(sig) & np.any(pts != 0, axis=-1)
+    r2 = np.einsum("ijk,ijk->ij", pts, pts)  # finite and > 0 exactly where every coordinate is finite, one not 0
+    valid = np.isfinite(r2) & (r2 > 0) & np.isfinite(sig)
     if not valid.any():
         return _empty(shape)
     sig = np.where(valid, np.maximum(sig, params.sigma_floor_m), np.nan)
     pts = np.where(valid[..., None], pts, np.nan)
-    rng = norm3(pts)
+    rng = np.where(valid, np.sqrt(r2), np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
         rays = pts / rng[..., None]
     declared = sig
     scale = None
-    jump_h, jump_v = jump_pairs(rng, sig, rays, params.jump_k, params.jump_tan)
+    angles = ray_angles(rays)
+    jump_h, jump_v = jump_pairs(rng, sig, rays, params.jump_k, params.jump_tan, angles)
     if params.calibrate_noise:
         scale = noise_scale(rng, sig, valid, jump_h, jump_v, params.window, params.max_noise_scale)
         sig = sig * scale
-        jump_h, jump_v = jump_pairs(rng, sig, rays, params.jump_k, params.jump_tan)
+        jump_h, jump_v = jump_pairs(rng, sig, rays, params.jump_k, params.jump_tan, angles)
     d = params.step(shape)
     if params.split_seeds is None:
         params = replace(params, split_seeds=d >= 2)
@@ -2120,7 +2133,7 @@ def _upsampler(shape: tuple[int, int], d: int):
 
 def _curvature_only(pts, sig, valid, jump_h, jump_v, params) -> Segmentation:
     """An image without any patch (no defined curvature anywhere): curvature images and edges only."""
-    cur = curvature_images(pts, sig, params)
+    cur = curvature_images(pts, sig, params, (jump_h, jump_v))
     hk = classify_hk(cur.H, cur.K, cur.sigma_H, cur.sigma_K, params.zero_k)
     edges = _edge_image(sig.shape, jump_h, jump_v)
     return _empty(sig.shape, hk, cur.H, cur.K, cur.sigma_H, cur.sigma_K, cur.normals, edges)
@@ -2128,15 +2141,16 @@ def _curvature_only(pts, sig, valid, jump_h, jump_v, params) -> Segmentation:
 
 def _pixel_residuals(P: np.ndarray, lab: np.ndarray, X: np.ndarray, U: np.ndarray, S: np.ndarray) -> np.ndarray:
     """|range residual| in sigma of points X (N, 3) to the surfaces P[lab] (per point), as in _quick_fit."""
-    p = P[lab]
-    x0, x1, x2 = X[:, 0], X[:, 1], X[:, 2]
-    g0 = 2 * (p[:, 0] * x0 + p[:, 3] * x1 + p[:, 4] * x2) + p[:, 6]
-    g1 = 2 * (p[:, 3] * x0 + p[:, 1] * x1 + p[:, 5] * x2) + p[:, 7]
-    g2 = 2 * (p[:, 4] * x0 + p[:, 5] * x1 + p[:, 2] * x2) + p[:, 8]
-    f = (p[:, 0] * x0 * x0 + p[:, 1] * x1 * x1 + p[:, 2] * x2 * x2
-         + 2 * (p[:, 3] * x0 * x1 + p[:, 4] * x0 * x2 + p[:, 5] * x1 * x2)
-         + p[:, 6] * x0 + p[:, 7] * x1 + p[:, 8] * x2 + p[:, 9])
-    gr = np.abs(g0 * U[:, 0] + g1 * U[:, 1] + g2 * U[:, 2])
+    p = P.T.take(lab, axis=1)  # (10, N): contiguous rows for the element-wise products below
+    x0, x1, x2 = X.T.copy()
+    u0, u1, u2 = U.T
+    g0 = 2 * (p[0] * x0 + p[3] * x1 + p[4] * x2) + p[6]
+    g1 = 2 * (p[3] * x0 + p[1] * x1 + p[5] * x2) + p[7]
+    g2 = 2 * (p[4] * x0 + p[5] * x1 + p[2] * x2) + p[8]
+    f = (p[0] * x0 * x0 + p[1] * x1 * x1 + p[2] * x2 * x2
+         + 2 * (p[3] * x0 * x1 + p[4] * x0 * x2 + p[5] * x1 * x2)
+         + p[6] * x0 + p[7] * x1 + p[8] * x2 + p[9])
+    gr = np.abs(g0 * u0 + g1 * u1 + g2 * u2)
     floor = _MIN_GRAZING * np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
     with np.errstate(invalid="ignore", divide="ignore"):
         z = np.abs(f) / (np.maximum(gr, floor) * S)
@@ -2179,7 +2193,7 @@ def _refine_full(labels: np.ndarray, valid: np.ndarray, st: _State, jump_h, jump
 def _segment_grid(pts, sig, valid, rng, rays, jump_h, jump_v, params: SegmentationParams):
     """The H-K segmentation proper on one grid: (labels, hk, curvature, crease pixels), None without classes."""
     shape = sig.shape
-    cur = curvature_images(pts, sig, params)
+    cur = curvature_images(pts, sig, params, (jump_h, jump_v))
     hk = classify_hk(cur.H, cur.K, cur.sigma_H, cur.sigma_K, params.zero_k)
     crease_h, crease_v = _crease_pairs(cur.normals, cur.sigma_normal, params)
     crease = np.zeros(shape, bool)

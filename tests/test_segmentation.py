@@ -701,3 +701,37 @@ def test_border_pixels_on_the_wrong_face_move_to_the_face_they_lie_on():
 def test_impossible_reassignment_parameters_are_refused(field, value):
     with pytest.raises(ValueError, match=field):
         SegmentationParams(**{field: value})
+
+
+@pytest.mark.parametrize("n_cols, fitted", [(2, False), (3, True)])
+def test_masked_fits_need_three_rows_and_three_columns(n_cols, fitted):
+    """A window whose returns span fewer than 3 columns cannot fix the second derivatives: NaN, not a fit
+    (with the variance rule off, the support rule alone decides)."""
+    v, u = np.mgrid[0:20, 0:20].astype(float)
+    pts = np.stack([(u - 10) * 0.01, (v - 10) * 0.01, np.full((20, 20), 2.0)], axis=-1)
+    cols = slice(9, 9 + n_cols)
+    keep = np.zeros((20, 20), bool)
+    keep[:, cols] = True
+    pts[~keep] = np.nan
+    sig = np.where(keep, 1e-3, np.nan)
+    der = D.quadratic_derivatives(pts, sig, 5, 4.0, 5.0, max_variance_ratio=np.inf)  # 2 x 5 pixels: support enough
+    assert not der.full.any()
+    assert np.isfinite(der.Puu[10, 10]).all() == fitted
+    if fitted:  # a plane: zero second derivatives, the pixel pitch as first ones
+        assert np.allclose(der.Pu[5:15, 10], [0.01, 0, 0], atol=1e-12)
+        assert np.allclose(der.Puu[5:15, 10], 0.0, atol=1e-12)
+
+
+@given(st.lists(st.integers(-1, 70000), min_size=0, max_size=80), st.booleans())
+@settings(max_examples=60, deadline=None)
+def test_groups_list_each_labels_pixels_in_order(values, small):
+    from recognition.segmentation import _groups
+
+    labels = np.array(values, np.int32)
+    if small:  # the 16-bit radix-sort path
+        labels = np.where(labels >= 0, labels % 300, -1).astype(np.int32)
+    got = _groups(labels.reshape(1, -1))
+    want = {int(k): np.flatnonzero(labels == k) for k in np.unique(labels[labels >= 0])}
+    assert list(got) == sorted(want)
+    for k, idx in want.items():
+        np.testing.assert_array_equal(got[k], idx)
