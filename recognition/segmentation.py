@@ -490,7 +490,7 @@ def noise_scale(rng: np.ndarray, sigma: np.ndarray, valid: np.ndarray, jump_h: n
     si, sj = np.nonzero(fs)
     rows, cols = rs[si], cs[sj]
     offs = np.arange(-h, h + 1)
-    patch = r0[rows[:, None, None] + offs[None, :, None], cols[:, None, None] + offs[None, None, :]]
+    patch = r0.ravel().take((rows * W + cols)[:, None, None] + (offs[:, None] * W + offs[None, :])[None])
     fit = np.einsum("nij,ij->n", patch, K2)
     az = np.abs(rng[rows, cols] - fit) / (sigma[rows, cols] * np.sqrt(max(1.0 - lev, 1e-6)) * 0.6745)
     glob = float(np.median(az))
