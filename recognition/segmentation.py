@@ -944,8 +944,9 @@ class _State:
 
 
 def _is_planar_counts(counts: np.ndarray) -> bool:
-    cc = counts[1:]
-    return bool(cc.sum() == 0 or np.argmax(cc) == 0)
+    """Whether planar pixels (class 1) are the patch's most common curvature class (or it has none)."""
+    c = counts.tolist()
+    return c[1] >= max(c[1:])
 
 
 # --------------------------------------------------------------------------------------------- batched fits
@@ -1578,7 +1579,7 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
         flats.pop(b)
         flats.pop(a)
         version[a] += 1
-        parent[parent == b] = a
+        parent[b] = a
         old = nbrs[a]
         nb_b = nbrs.pop(b)
         nbrs[a] = (old | nb_b) - {a, b}
@@ -1586,6 +1587,11 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
             nbrs[q].discard(b)
             nbrs[q].add(a)
         push([(a, q) for q in sorted(nb_b - {a}) if q not in old])
+    while True:  # follow each label's chain of merges to the patch that absorbed it last
+        nxt = parent[parent]
+        if np.array_equal(nxt, parent):
+            break
+        parent = nxt
     out = labels.copy()
     m = out >= 0
     out[m] = parent[out[m]]
@@ -2006,7 +2012,12 @@ def _split_disconnected(labels: np.ndarray, valid: np.ndarray) -> np.ndarray:
     lab = flat[idx]
     sel = lab >= 0
     key = comp[sel].astype(np.int64) * (int(lab.max()) + 1) + lab[sel]
-    _, new = np.unique(key, return_inverse=True)
+    if key.size and int(key.max()) < 4 * key.size:  # the rank of each key among the distinct keys, by counting
+        present = np.zeros(int(key.max()) + 1, bool)
+        present[key] = True
+        new = (np.cumsum(present) - 1)[key]
+    else:
+        _, new = np.unique(key, return_inverse=True)
     out = np.full(flat.size, -1, np.int32)
     out[idx[sel]] = new
     return out.reshape(labels.shape)
@@ -2127,7 +2138,9 @@ def _upsampler(shape: tuple[int, int], d: int):
     H, W = shape
 
     def up(a: np.ndarray) -> np.ndarray:
-        return a.repeat(d, axis=0).repeat(d, axis=1)[:H, :W]
+        h, w = a.shape[:2]
+        big = np.broadcast_to(a[:, None, :, None], (h, d, w, d, *a.shape[2:]))
+        return big.reshape(h * d, w * d, *a.shape[2:])[:H, :W]
     return up
 
 

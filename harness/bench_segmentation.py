@@ -1,0 +1,92 @@
+"""Benchmark of the H-K segmentation alone: time per frame and Hoover correct detection on a suite's scans.
+
+``python -m harness.bench_segmentation [--suite default] [--repeat 3] [--groups mockup,...] [--limit N]``
+simulates each trial's scan as ``harness bench`` does, then segments it ``--repeat`` times in this one
+process, with the numerical libraries on one thread as in the runner's workers. Per group and overall it
+prints the median and p90 over frames of the best-of-repeats time per frame: process time (the machine may
+be shared) and wall time. Beside them: the correct detection rate at T = 0.8 over truth regions of 200 pixels
+or more, averaged over frames as in ``summary.json``, and a SHA-1 of the label images, so that a change made
+for speed can show it left every label alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import time
+
+import numpy as np
+
+
+def _row(name: str, cpu: list[float], wall: list[float], cd: list[float]) -> str:
+    c, w = np.array(cpu), np.array(wall)
+    rates = [x for x in cd if x is not None]
+    det = f"{np.mean(rates):.3f}" if rates else "n/a"
+    return (f"{name:32s} {len(c):4d}  {np.median(c):.3f}  {np.percentile(c, 90):.3f}  {np.median(w):.3f}  "
+            f"{np.percentile(w, 90):.3f}  {det}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    from threadpoolctl import threadpool_limits
+
+    from evaluation.patches import segmentation_section
+    from harness.suite import load_suite
+    from harness.trial import prepare_scene, sensor_for, trial_scan, trial_viewpoints
+    from recognition.describe import core_sigma
+    from recognition.segmentation import segment
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--suite", default="default", help="a shipped suite's name or a suite YAML file")
+    ap.add_argument("--repeat", type=int, default=3, help="segmentations per frame; the fastest one counts")
+    ap.add_argument("--groups", default=None, help="comma-separated group names (default: all)")
+    ap.add_argument("--limit", type=int, default=None, help="at most this many trials")
+    args = ap.parse_args(argv)
+    if args.repeat < 1:
+        ap.error("--repeat must be >= 1")
+    suite = load_suite(args.suite)
+    trials = [t for t in suite.trials if args.groups is None or t.group in args.groups.split(",")]
+    if args.groups is not None and not trials:
+        ap.error(f"no trial in groups {args.groups!r}; the suite's groups: "
+                 f"{', '.join(sorted({t.group for t in suite.trials}))}")
+    trials = trials[:args.limit]
+    rows: dict[str, tuple[list[float], list[float], list[float]]] = {}
+    digest = hashlib.sha1()
+    with threadpool_limits(limits=1):
+        for spec in trials:
+            prepared = prepare_scene(spec, None)
+            config = sensor_for(spec)
+            views = trial_viewpoints(spec, prepared, config)
+            if not views.viewpoints:
+                print(f"{spec.trial_id}: no viewpoint, skipped", flush=True)
+                continue
+            scan, truth = trial_scan(spec, prepared, config, views.viewpoints[0].T_world_sensor)
+            sigma = core_sigma(scan)
+            cpu = wall = float("inf")
+            for _ in range(args.repeat):
+                t0, c0 = time.perf_counter(), time.process_time()
+                seg = segment(scan.points, sigma)
+                cpu = min(cpu, time.process_time() - c0)
+                wall = min(wall, time.perf_counter() - t0)
+            digest.update(seg.labels.tobytes())
+            cd = segmentation_section(seg.labels, truth, scan.valid)["correct_detection_rate"]
+            for key in (spec.group, "all"):
+                acc = rows.setdefault(key, ([], [], []))
+                acc[0].append(cpu)
+                acc[1].append(wall)
+                acc[2].append(cd)
+            h, w = scan.valid.shape
+            print(f"{spec.trial_id}: {w}x{h} process {cpu:.3f} s, wall {wall:.3f} s, correct detection "
+                  f"{'n/a' if cd is None else f'{cd:.3f}'}", flush=True)
+    if not rows:
+        print("no frame segmented")
+        return 1
+    print(f"\nsegmentation per frame, best of {args.repeat} (s); correct detection at T = 0.8, mean over frames")
+    print(f"{'group':32s} {'n':>4s}  {'cpu50':>5s}  {'cpu90':>5s}  {'wal50':>5s}  {'wal90':>5s}  det.")
+    for key in sorted(rows, key=lambda k: (k == "all", k)):
+        print(_row(key, *rows[key]))
+    print(f"labels sha1 {digest.hexdigest()}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
