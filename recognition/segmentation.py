@@ -1086,6 +1086,17 @@ def _quick_fits_of(groups: dict[int, np.ndarray], keys: list[int], st: _State) -
     return dict(zip(keys, P, strict=True))
 
 
+def _trim_threshold(z: np.ndarray, trim: float) -> float:
+    """``max(trim, 3 median(z))`` for residuals ``z >= 0``; counting instead of sorting when the middle
+    element(s) are within ``trim / 3``."""
+    n = z.size
+    m = (n + 1) // 2  # rank of the (lower) middle element
+    within = int(np.count_nonzero(3.0 * z <= trim))
+    if within >= m + (n % 2 == 0):  # the middle element(s) within: so is their mean
+        return trim
+    return max(trim, 3.0 * float(np.median(z)))
+
+
 def _fit_groups(groups: dict[int, np.ndarray], st: _State, n_labels: int, trim: float | None = None) -> np.ndarray:
     """Plane / quadric parameters (n_labels, 10) of each group (on a subsample of its pixels).
 
@@ -1114,7 +1125,7 @@ def _fit_groups(groups: dict[int, np.ndarray], st: _State, n_labels: int, trim: 
         for k in range(len(labs)):
             if subs[k].size < 10:
                 continue
-            keep = zs[k] <= max(trim, 3.0 * float(np.median(zs[k])))
+            keep = zs[k] <= _trim_threshold(zs[k], trim)
             if 10 <= keep.sum() < subs[k].size:
                 subs[k] = subs[k][keep]
                 redo.append(k)
@@ -1348,8 +1359,9 @@ def _grow(labels: np.ndarray, P: np.ndarray, st: _State, links, max_iter: int, t
         r_new, c_new = np.divmod(new, W)
         around = np.concatenate([new[c_new > 0] - 1, new[c_new < W - 1] + 1, new[r_new > 0] - W,
                                  new[r_new < H - 1] + W])
-        ci = np.unique(where[around])
-        ci = ci[ci >= 0]
+        touched = np.zeros(cand.size + 1, bool)  # (the last slot takes the -1 of pixels that are not candidates)
+        touched[where[around]] = True
+        ci = np.flatnonzero(touched[:-1])
         fi = ci[flat[cand[ci]] < 0]
 
 
@@ -1449,26 +1461,41 @@ class _FitPart:
         return float(z @ z)
 
 
-def _plane_union_rms(large: _FitPart, small: _FitPart | None = None) -> tuple[float, float]:
-    """RMS ray z-residual (as in :func:`_plane_fits`) of the total-least-squares plane of ``large`` and
-    ``small`` together, over all their points and over ``small``'s (``large``'s without ``small``); inf for
-    fewer than 3 points (NaN residuals, impossible for valid pixels, would make them NaN: never accepted)."""
-    if small is None:
-        if large.n < 3:
-            return float("inf"), float("inf")
-        normal = np.linalg.eigh(large.scatter)[1][:, 0]
-        c = large.chi2(normal, float(large.mean @ normal))
-        return float(np.sqrt(c / large.n)), float(np.sqrt(c / large.n))
-    n = large.n + small.n
-    if n < 3 or small.n == 0:
-        return float("inf"), float("inf")
-    mean = (large.n * large.mean + small.n * small.mean) / n
-    d = large.mean - small.mean
-    scatter = large.scatter + small.scatter + (large.n * small.n / n) * np.outer(d, d)
-    normal = np.linalg.eigh(scatter)[1][:, 0]
-    offset = float(mean @ normal)
-    c_small = small.chi2(normal, offset)
-    return float(np.sqrt((large.chi2(normal, offset) + c_small) / n)), float(np.sqrt(c_small / small.n))
+def _plane_union_rms(pairs: list[tuple[_FitPart, _FitPart | None]]) -> list[tuple[float, float]]:
+    """For each ``(large, small)``: the RMS ray z-residual (as in :func:`_plane_fits`) of the total-least-squares
+    plane of both parts together, over all their points and over ``small``'s (``small`` None: ``large`` alone,
+    both RMS over its points); inf for fewer than 3 points (NaN residuals, impossible for valid pixels, would
+    make them NaN: never accepted). The planes' eigen-decompositions are done in one batch."""
+    out = [(float("inf"), float("inf"))] * len(pairs)
+    todo, means, scatters = [], [], []
+    for i, (large, small) in enumerate(pairs):
+        if small is None:
+            if large.n >= 3:
+                todo.append(i)
+                means.append(large.mean)
+                scatters.append(large.scatter)
+            continue
+        n = large.n + small.n
+        if n < 3 or small.n == 0:
+            continue
+        d = large.mean - small.mean
+        todo.append(i)
+        means.append((large.n * large.mean + small.n * small.mean) / n)
+        scatters.append(large.scatter + small.scatter + (large.n * small.n / n) * np.outer(d, d))
+    if not todo:
+        return out
+    normals = np.linalg.eigh(np.array(scatters))[1][:, :, 0]
+    for i, mean, normal in zip(todo, means, normals, strict=True):
+        large, small = pairs[i]
+        offset = float(mean @ normal)
+        if small is None:
+            c = large.chi2(normal, offset)
+            out[i] = (float(np.sqrt(c / large.n)), float(np.sqrt(c / large.n)))
+        else:
+            c_small = small.chi2(normal, offset)
+            out[i] = (float(np.sqrt((large.chi2(normal, offset) + c_small) / (large.n + small.n))),
+                      float(np.sqrt(c_small / small.n)))
+    return out
 
 
 def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
@@ -1498,9 +1525,9 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
     flats: dict[int, bool] = {}  # whether a plane fits the patch, computed when needed
 
     def update_flats(keys) -> None:
-        for k in keys:
-            if k not in flats:
-                flats[k] = _plane_union_rms(parts[k])[0] <= thr
+        new = [k for k in keys if k not in flats]
+        for k, (rms, _) in zip(new, _plane_union_rms([(parts[k], None) for k in new]), strict=True):
+            flats[k] = rms <= thr
 
     update_flats(list(members))
     version = dict.fromkeys(members, 0)
@@ -1516,6 +1543,7 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
         update_flats(sorted({k for pair in pairs for k in pair}))
         todo, ordered, planar, n_large = [], [], [], []
         curved = []  # (index in todo) of the unions fitted by a quadric, in one batch
+        flat_pairs = []  # (index in pairs, larger, smaller) of the unions fitted by a plane, in one batch
         for i, (a, b) in enumerate(pairs):
             if st.params.class_min_pixels and _class_boundary(counts[a], counts[b], st.params.class_min_pixels):
                 continue
@@ -1528,11 +1556,13 @@ def _merge(labels: np.ndarray, st: _State, jump_h, jump_v) -> np.ndarray:
             # plane, never as the plane pair a general quadric fits exactly
             planar.append((planar_class[a] and planar_class[b]) or (flats[a] and flats[b]))
             if planar[-1] or subs[a].size + subs[b].size < 10:  # (< 10 points: a plane, as in _quick_fits)
-                rms_all, rms_small = _plane_union_rms(parts[a], parts[b])
-                if rms_small <= 1.5 * thr:
-                    out[i] = rms_all
+                flat_pairs.append((i, a, b))
             else:
                 curved.append(len(todo) - 1)
+        flat_rms = _plane_union_rms([(parts[a], parts[b]) for _, a, b in flat_pairs])
+        for (i, _, _), (rms_all, rms_small) in zip(flat_pairs, flat_rms, strict=True):
+            if rms_small <= 1.5 * thr:
+                out[i] = rms_all
         # two planar-looking pieces of one gently curved surface (a large pipe close to a noisy sensor) that
         # no plane fits are retried as a quadric, which must not be the plane pair of two faces at a crease
         retry = [j for j in range(len(todo))

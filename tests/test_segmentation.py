@@ -735,3 +735,12 @@ def test_groups_list_each_labels_pixels_in_order(values, small):
     assert list(got) == sorted(want)
     for k, idx in want.items():
         np.testing.assert_array_equal(got[k], idx)
+
+
+@given(st.lists(st.floats(0.0, 20.0) | st.just(np.inf), min_size=1, max_size=40), st.sampled_from([2.0, 6.0, 7.5]))
+@settings(max_examples=200, deadline=None)
+def test_trim_threshold_is_max_of_trim_and_three_medians(z, trim):
+    from recognition.segmentation import _trim_threshold
+
+    z = np.array(z)
+    assert _trim_threshold(z, trim) == max(trim, 3.0 * float(np.median(z)))
