@@ -2168,9 +2168,7 @@ def _upsampler(shape: tuple[int, int], d: int):
     H, W = shape
 
     def up(a: np.ndarray) -> np.ndarray:
-        h, w = a.shape[:2]
-        big = np.broadcast_to(a[:, None, :, None], (h, d, w, d, *a.shape[2:]))
-        return big.reshape(h * d, w * d, *a.shape[2:])[:H, :W]
+        return a.repeat(d, axis=0).repeat(d, axis=1)[:H, :W]
     return up
 
 
