@@ -999,15 +999,26 @@ _TAUBIN_MAP = np.einsum("kmi,knj->mnij", MONOMIAL_GRADIENT, MONOMIAL_GRADIENT)[:
 
 def _quadric_fits(X, U, S, gid, starts, cnt):
     """Taubin quadrics of the groups (unit-norm algebraic fit where Taubin's is undefined), in normalised
-    coordinates per group: parameters (G, 10) in metres and per-point ray z-residuals (N,)."""
+    coordinates per group: parameters (G, 10) in metres and per-point ray z-residuals (N,).
+
+    Per-point quantities are laid out by rows (one contiguous row per monomial or coordinate): the products
+    below then run on contiguous memory.
+    """
     G = len(cnt)
     mean = _group_sums(X, starts) / cnt[:, None]
     d = X - mean[gid]
     scale = np.sqrt(_group_sums(np.einsum("ij,ij->i", d, d), starts) / cnt)
     scale = np.where(scale > 0, scale, 1.0)
-    y = d / scale[gid, None]
-    D = quadric_monomials(y)
-    M = _group_grams(D, starts, cnt)
+    yT = (d / scale[gid, None]).T.copy()
+    x0, x1, x2 = yT
+    DT = np.empty((10, x0.size))  # quadric_monomials(y).T
+    np.multiply(x0, x0, out=DT[0])
+    np.multiply(x1, x1, out=DT[1])
+    np.multiply(x2, x2, out=DT[2])
+    DT[3], DT[4], DT[5] = 2 * x0 * x1, 2 * x0 * x2, 2 * x1 * x2
+    DT[6:9] = yT
+    DT[9] = 1.0
+    M = np.stack([DT[:, s:s + c] @ DT[:, s:s + c].T for s, c in zip(starts.tolist(), cnt.tolist(), strict=True)])
     S4 = M[:, 6:, 6:]  # the moments of (x, y, z, 1), the last four monomials
     N9 = (S4.reshape(G, 16) @ _TAUBIN_MAP).reshape(G, 9, 9)
     tr = np.trace(M, axis1=1, axis2=2)
@@ -1028,11 +1039,14 @@ def _quadric_fits(X, U, S, gid, starts, cnt):
         _, V = np.linalg.eigh(M[~ok])
         pn[~ok] = V[:, :, 0]
     pn /= np.linalg.norm(pn, axis=1, keepdims=True)
-    pp = pn[gid]
-    f = np.einsum("ij,ij->i", D, pp)
-    g = quadric_gradient(pp, y)
-    gr = np.abs(np.einsum("ij,ij->i", g, U))
-    floor = _MIN_GRAZING * norm3(g)
+    p = pn.T if G == 1 else pn.T.take(gid, axis=1)  # (10, 1) broadcast, or (10, N): each point's quadric
+    f = np.einsum("ij,ij->j", DT, np.broadcast_to(p, DT.shape))
+    g0 = 2 * (p[0] * x0 + p[3] * x1 + p[4] * x2) + p[6]  # quadric_gradient, by rows
+    g1 = 2 * (p[3] * x0 + p[1] * x1 + p[5] * x2) + p[7]
+    g2 = 2 * (p[4] * x0 + p[5] * x1 + p[2] * x2) + p[8]
+    u0, u1, u2 = U.T
+    gr = np.abs(g0 * u0 + g1 * u1 + g2 * u2)
+    floor = _MIN_GRAZING * np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
     with np.errstate(invalid="ignore", divide="ignore"):
         z = scale[gid] * np.abs(f) / (np.maximum(gr, floor) * S)
     # back to metres (normalisation_transform of every group at once): A / s², b / s - 2 A m / s², ...
