@@ -1467,11 +1467,9 @@ class _FitPart:
 
     def chi2(self, normal: np.ndarray, offset: float) -> float:
         """Sum of squared ray z-residuals (as in :func:`_plane_fits`) to the plane ``normal . x = offset``."""
-        N = np.zeros((6, 2))
-        N[:3, 0] = N[3:, 1] = normal
-        f, g = (self.XU @ N).T
-        with np.errstate(invalid="ignore", divide="ignore"):
-            z = (f - offset) / (np.maximum(np.abs(g), _MIN_GRAZING) * self.S)
+        f = self.XU[:, :3] @ normal
+        g = self.XU[:, 3:] @ normal
+        z = (f - offset) / (np.maximum(np.abs(g), _MIN_GRAZING) * self.S)  # valid pixels: sigma > 0
         return float(z @ z)
 
 
