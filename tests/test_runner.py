@@ -236,3 +236,26 @@ def test_store_writes_atomically_and_cleans_temporaries(tmp_path):
     Path(tmp_path / "r" / "trials" / "broken.json").write_text("{")
     with RunDirectory(tmp_path / "r") as rd:
         assert rd.finished("h") == {"t"}  # an unreadable record is redone, not trusted
+
+
+def test_segmentation_benchmark_times_and_scores_one_frame(capsys):
+    from harness.bench_segmentation import main as bench_segmentation
+
+    assert bench_segmentation(["--suite", "smoke", "--limit", "1", "--repeat", "2"]) == 0
+    out = capsys.readouterr().out
+    rows = [line.split() for line in out.splitlines() if line.startswith(("all ", "mockup/", "factory_bay/"))]
+    assert [r[0] for r in rows][-1] == "all" and all(r[1] == "1" for r in rows)
+    cpu50, wall50, detection = float(rows[-1][2]), float(rows[-1][4]), float(rows[-1][6])
+    assert 0 < cpu50 < 60 and 0 < wall50 < 60 and 0 <= detection <= 1
+    assert "labels sha1 " in out
+
+
+@pytest.mark.parametrize("argv, message", [(["--repeat", "0"], "--repeat must be >= 1"),
+                                           (["--groups", "no_such_group"], "no trial in groups 'no_such_group'")])
+def test_segmentation_benchmark_refuses_bad_arguments(argv, message, capsys):
+    from harness.bench_segmentation import main as bench_segmentation
+
+    with pytest.raises(SystemExit) as exc:
+        bench_segmentation(["--suite", "smoke", *argv])
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
