@@ -1854,7 +1854,9 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
     params = SegmentationParams() if params is None else params
     pts, sig = _check_inputs(points, sigma)
     shape = sig.shape
-    r2 = np.einsum("ijk,ijk->ij", pts, pts)  # finite and > 0 exactly where every coordinate is finite, one not 0
+    # finite and > 0 where every coordinate is finite and one is not 0 (a range beyond 1e154 m, whose square
+    # overflows, counts as no return)
+    r2 = np.einsum("ijk,ijk->ij", pts, pts)
     valid = np.isfinite(r2) & (r2 > 0) & np.isfinite(sig)
     if not valid.any():
         return _empty(shape)
