@@ -1731,14 +1731,20 @@ def _attach_isolated(labels: np.ndarray, st: _State, jump_h: np.ndarray, jump_v:
     cands = {p: [int(q) for q in across[across[:, 0] == p, 1] if groups[int(q)].size > groups[p].size]
              for p in isolated}
     fits = _quick_fits_of(groups, sorted({q for c in cands.values() for q in c}), st)
+    tests = [(p, q) for p in isolated for q in cands[p]]
+    rms_of = {}
+    if tests:  # the RMS residual of each isolated patch to each candidate's surface, in one pass
+        P = np.array([fits[q] for _, q in tests])
+        idx = np.concatenate([groups[p] for p, _ in tests])
+        sizes = np.array([groups[p].size for p, _ in tests])
+        z = _pixel_residuals(P, np.repeat(np.arange(len(tests)), sizes), st.X[idx], st.U[idx], st.S[idx])
+        ms = np.add.reduceat(z * z, np.concatenate([[0], np.cumsum(sizes)[:-1]])) / sizes
+        rms_of = dict(zip(tests, np.sqrt(ms).tolist(), strict=True))
     for p in isolated:
         best, best_rms = -1, st.params.grow_k
         for q in cands[p]:
-            idx = groups[p]
-            _, _, z = ray_residuals(fits[q], st.X[idx], st.S[idx])
-            rms = _rms(np.where(np.isfinite(z), z, np.inf))
-            if rms <= best_rms:
-                best, best_rms = q, rms
+            if rms_of[(p, q)] <= best_rms:
+                best, best_rms = q, rms_of[(p, q)]
         if best >= 0 and remap[best] == best:
             remap[p] = best
     if np.all(remap == np.arange(remap.size)):
