@@ -865,16 +865,20 @@ def _tile_small_leftovers(comp: np.ndarray, st: _State, params: SegmentationPara
 
 
 def _groups(labels: np.ndarray) -> dict[int, np.ndarray]:
-    """Flat pixel indices of each label >= 0."""
+    """Flat pixel indices of each label >= 0 (increasing)."""
     flat = labels.ravel()
-    idx = np.flatnonzero(flat >= 0)
-    if idx.size == 0:
+    if flat.size == 0 or flat.max() < 0:
         return {}
-    lab = flat[idx]
-    if lab.max() < 2**16:
-        lab = lab.astype(np.uint16)  # numpy's stable sort of 16-bit integers is a radix sort
-    order = np.argsort(lab, kind="stable")
-    idx, lab = idx[order], lab[order]
+    if -2**15 <= flat.min() and flat.max() < 2**15:
+        # numpy's stable sort of 16-bit integers is a radix sort; as uint16 the negative labels become >= 2**15
+        # and sort after every patch
+        key = flat.astype(np.uint16)
+        idx = np.argsort(key, kind="stable")[:np.count_nonzero(flat >= 0)]
+    else:
+        key = flat
+        idx = np.flatnonzero(flat >= 0)
+        idx = idx[np.argsort(flat[idx], kind="stable")]
+    lab = key[idx]
     cuts = np.flatnonzero(np.diff(lab)) + 1
     starts = np.concatenate([[0], cuts]).tolist()
     ends = [*starts[1:], idx.size]
