@@ -1,12 +1,12 @@
 """Benchmark of the H-K segmentation alone: time per frame and Hoover correct detection on a suite's scans.
 
-``python -m harness.bench_segmentation [--suite default] [--repeat 3] [--groups mockup,...] [--limit N]``
-simulates each trial's scan as ``harness bench`` does, then segments it ``--repeat`` times in this one
+``python -m harness.bench_segmentation [--suite default] [--repeat 3] [--groups mockup,...] [--limit N]
+[--json OUT]`` simulates each trial's scan as ``harness bench`` does, then segments it ``--repeat`` times in this one
 process, with the numerical libraries on one thread as in the runner's workers. Per group and overall it
 prints the median and p90 over frames of the best-of-repeats time per frame: process time (the machine may
 be shared) and wall time. Beside them: the correct detection rate at T = 0.8 over truth regions of 200 pixels
 or more, averaged over frames as in ``summary.json``, and a SHA-1 of the label images, so that a change made
-for speed can show it left every label alone.
+for speed can show it left every label alone. ``--json`` also writes all of it, per frame and per group.
 """
 
 from __future__ import annotations
@@ -14,16 +14,22 @@ from __future__ import annotations
 import argparse
 import hashlib
 import time
+from pathlib import Path
 
 import numpy as np
 
 
-def _row(name: str, cpu: list[float], wall: list[float], cd: list[float]) -> str:
-    c, w = np.array(cpu), np.array(wall)
+def _stats(cpu: list[float], wall: list[float], cd: list[float]) -> dict:
     rates = [x for x in cd if x is not None]
-    det = f"{np.mean(rates):.3f}" if rates else "n/a"
-    return (f"{name:32s} {len(c):4d}  {np.median(c):.3f}  {np.percentile(c, 90):.3f}  {np.median(w):.3f}  "
-            f"{np.percentile(w, 90):.3f}  {det}")
+    return {"n": len(cpu), "cpu_median_s": float(np.median(cpu)), "cpu_p90_s": float(np.percentile(cpu, 90)),
+            "wall_median_s": float(np.median(wall)), "wall_p90_s": float(np.percentile(wall, 90)),
+            "correct_detection_rate": float(np.mean(rates)) if rates else None}
+
+
+def _row(name: str, st: dict) -> str:
+    det = "n/a" if st["correct_detection_rate"] is None else f"{st['correct_detection_rate']:.3f}"
+    return (f"{name:32s} {st['n']:4d}  {st['cpu_median_s']:.3f}  {st['cpu_p90_s']:.3f}  {st['wall_median_s']:.3f}  "
+            f"{st['wall_p90_s']:.3f}  {det}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -40,6 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeat", type=int, default=3, help="segmentations per frame; the fastest one counts")
     ap.add_argument("--groups", default=None, help="comma-separated group names (default: all)")
     ap.add_argument("--limit", type=int, default=None, help="at most this many trials")
+    ap.add_argument("--json", type=Path, default=None, help="also write the figures to this JSON file")
     args = ap.parse_args(argv)
     if args.repeat < 1:
         ap.error("--repeat must be >= 1")
@@ -50,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
                  f"{', '.join(sorted({t.group for t in suite.trials}))}")
     trials = trials[:args.limit]
     rows: dict[str, tuple[list[float], list[float], list[float]]] = {}
+    frames: list[dict] = []
     digest = hashlib.sha1()
     with threadpool_limits(limits=1):
         for spec in trials:
@@ -75,6 +83,8 @@ def main(argv: list[str] | None = None) -> int:
                 acc[1].append(wall)
                 acc[2].append(cd)
             h, w = scan.valid.shape
+            frames.append({"trial_id": spec.trial_id, "group": spec.group, "width": w, "height": h, "cpu_s": cpu,
+                           "wall_s": wall, "correct_detection_rate": cd})
             print(f"{spec.trial_id}: {w}x{h} process {cpu:.3f} s, wall {wall:.3f} s, correct detection "
                   f"{'n/a' if cd is None else f'{cd:.3f}'}", flush=True)
     if not rows:
@@ -82,9 +92,15 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     print(f"\nsegmentation per frame, best of {args.repeat} (s); correct detection at T = 0.8, mean over frames")
     print(f"{'group':32s} {'n':>4s}  {'cpu50':>5s}  {'cpu90':>5s}  {'wal50':>5s}  {'wal90':>5s}  det.")
-    for key in sorted(rows, key=lambda k: (k == "all", k)):
-        print(_row(key, *rows[key]))
+    groups = {key: _stats(*rows[key]) for key in sorted(rows, key=lambda k: (k == "all", k))}
+    for key, st in groups.items():
+        print(_row(key, st))
     print(f"labels sha1 {digest.hexdigest()}")
+    if args.json is not None:
+        from harness.store import write_json_atomic
+
+        write_json_atomic(args.json, {"suite": args.suite, "repeat": args.repeat, "frames": frames,
+                                      "groups": groups, "labels_sha1": digest.hexdigest()})
     return 0
 
 

@@ -238,16 +238,21 @@ def test_store_writes_atomically_and_cleans_temporaries(tmp_path):
         assert rd.finished("h") == {"t"}  # an unreadable record is redone, not trusted
 
 
-def test_segmentation_benchmark_times_and_scores_one_frame(capsys):
+def test_segmentation_benchmark_times_and_scores_one_frame(tmp_path, capsys):
     from harness.bench_segmentation import main as bench_segmentation
 
-    assert bench_segmentation(["--suite", "smoke", "--limit", "1", "--repeat", "2"]) == 0
+    out_json = tmp_path / "seg.json"
+    assert bench_segmentation(["--suite", "smoke", "--limit", "1", "--repeat", "2", "--json", str(out_json)]) == 0
     out = capsys.readouterr().out
     rows = [line.split() for line in out.splitlines() if line.startswith(("all ", "mockup/", "factory_bay/"))]
     assert [r[0] for r in rows][-1] == "all" and all(r[1] == "1" for r in rows)
     cpu50, wall50, detection = float(rows[-1][2]), float(rows[-1][4]), float(rows[-1][6])
     assert 0 < cpu50 < 60 and 0 < wall50 < 60 and 0 <= detection <= 1
-    assert "labels sha1 " in out
+    res = json.loads(out_json.read_text())
+    assert f"labels sha1 {res['labels_sha1']}" in out
+    (frame,) = res["frames"]
+    assert (frame["width"], frame["height"]) == (640, 480) and frame["cpu_s"] == res["groups"]["all"]["cpu_median_s"]
+    assert f"{res['groups']['all']['correct_detection_rate']:.3f}" == rows[-1][6]
 
 
 @pytest.mark.parametrize("argv, message", [(["--repeat", "0"], "--repeat must be >= 1"),
