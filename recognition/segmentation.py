@@ -1045,14 +1045,7 @@ def _quadric_fits(X, U, S, gid, starts, cnt):
     pn /= np.linalg.norm(pn, axis=1, keepdims=True)
     p = pn.T if G == 1 else pn.T.take(gid, axis=1)  # (10, 1) broadcast, or (10, N): each point's quadric
     f = np.einsum("ij,ij->j", DT, np.broadcast_to(p, DT.shape))
-    g0 = 2 * (p[0] * x0 + p[3] * x1 + p[4] * x2) + p[6]  # quadric_gradient, by rows
-    g1 = 2 * (p[3] * x0 + p[1] * x1 + p[5] * x2) + p[7]
-    g2 = 2 * (p[4] * x0 + p[5] * x1 + p[2] * x2) + p[8]
-    u0, u1, u2 = U.T
-    gr = np.abs(g0 * u0 + g1 * u1 + g2 * u2)
-    floor = _MIN_GRAZING * np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        z = scale[gid] * np.abs(f) / (np.maximum(gr, floor) * S)
+    z = _ray_z(p, yT, U, S, scale[gid] * f)  # |s f| = s |f|: back to metres
     # back to metres (normalisation_transform of every group at once): A / s², b / s - 2 A m / s², ...
     Ay = pn[:, [0, 3, 4, 3, 1, 5, 4, 5, 2]].reshape(G, 3, 3)
     Am = np.einsum("gij,gj->gi", Ay, mean)
@@ -1062,7 +1055,7 @@ def _quadric_fits(X, U, S, gid, starts, cnt):
     P[:, 6:9] = pn[:, 6:9] / scale[:, None] - 2.0 * Am * is2[:, None]
     P[:, 9] = np.einsum("gi,gi->g", mean, Am) * is2 - np.einsum("gi,gi->g", pn[:, 6:9], mean) / scale + pn[:, 9]
     P /= np.linalg.norm(P, axis=1, keepdims=True)
-    return P, np.where(np.isfinite(z), z, np.inf)
+    return P, z
 
 
 def _quick_fits(idx_list: list[np.ndarray], planar: np.ndarray, st: _State):
@@ -1908,17 +1901,19 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
                                                  cur_d.sigma_normal)))
         crease = up(crease_d)
         st_full.hk = hk.ravel().astype(np.int64)
-        labels = _refine_full(up(labels_d), valid, st_full, jump_h, jump_v, params, d)
+        links = _neighbour_links(shape, valid, jump_h, jump_v)  # (the full-resolution grid's, for both steps)
+        labels = _refine_full(up(labels_d), valid, st_full, links, jump_h, jump_v, params, d)
         labels = _merge(labels, st_full, jump_h, jump_v)  # (before the cuts below, which it would undo)
         split = _split_plane_pairs(labels, st_full, params, cur.normals.reshape(-1, 3))
         if split is not labels:  # a split-off side too small to stand alone goes to the face it belongs to
             labels = _absorb_fragments(split, st_full, jump_h, jump_v, params.min_region_pixels, params.absorb_k)
         if params.axis_split_pixels is not None:
             labels = _split_along_axis(labels, st_full, cur.normals.reshape(-1, 3), params)
+        if params.reassign_rounds:
+            labels = _reassign(labels, st_full, links, jump_h, jump_v, params.reassign_rounds,
+                               params.reassign_margin)
     edges = _edge_image(shape, jump_h, jump_v)
     edges[crease] |= np.uint8(EdgeType.CREASE)
-    if d > 1 and params.reassign_rounds:
-        labels = _reassign(labels, st_full, jump_h, jump_v, params.reassign_rounds, params.reassign_margin)
     labels = _peel_weak(labels, params.min_region_pixels, jump_h, jump_v)
     labels, patches = _finalise(labels, st_full, params, declared.ravel())
     return Segmentation(labels, hk, cur.H, cur.K, cur.sigma_H, cur.sigma_K, cur.normals, edges, patches, scale)
@@ -2101,7 +2096,7 @@ def _peel_weak(labels: np.ndarray, min_pixels: int, jump_h: np.ndarray, jump_v: 
     return np.where(m & (same <= 2), -1, labels).astype(np.int32)
 
 
-def _reassign(labels: np.ndarray, st: _State, jump_h: np.ndarray, jump_v: np.ndarray, rounds: int,
+def _reassign(labels: np.ndarray, st: _State, links, jump_h: np.ndarray, jump_v: np.ndarray, rounds: int,
               margin: float, refit_pixels: int = 4000) -> np.ndarray:
     """Move border pixels to the neighbouring patch whose surface fits them clearly better (returns new labels).
 
@@ -2111,7 +2106,7 @@ def _reassign(labels: np.ndarray, st: _State, jump_h: np.ndarray, jump_v: np.nda
     within ``2 grow_k`` sigma and ``margin`` sigma smaller than to its own; the patches that changed are
     refitted (those of more than ``refit_pixels`` pixels hardly move and are not) and the pixels next to the
     moved ones tested again, for at most ``rounds`` rounds. Pixels near a crease fit both faces within the
-    margin and stay.
+    margin and stay. ``links``: :func:`_neighbour_links` of the grid.
     """
     H, W = labels.shape
     out = labels.copy()
@@ -2120,8 +2115,6 @@ def _reassign(labels: np.ndarray, st: _State, jump_h: np.ndarray, jump_v: np.nda
     if n < 2:
         return out
     thr = 2.0 * st.params.grow_k
-    valid = np.isfinite(st.S).reshape(H, W)
-    links = _neighbour_links((H, W), valid, jump_h, jump_v)
     groups = _groups(out)
     P = _fit_groups(groups, st, n, trim=thr)
     steps = np.array([dr * W + dc for dr, dc, _ in links])
@@ -2206,15 +2199,26 @@ def _curvature_only(pts, sig, valid, jump_h, jump_v, params) -> Segmentation:
 
 def _pixel_residuals(P: np.ndarray, lab: np.ndarray, X: np.ndarray, U: np.ndarray, S: np.ndarray) -> np.ndarray:
     """|range residual| in sigma of points X (N, 3) to the surfaces P[lab] (per point), as in _quick_fit."""
-    p = P.T.take(lab, axis=1)  # (10, N): contiguous rows for the element-wise products below
-    x0, x1, x2 = X.T.copy()
-    u0, u1, u2 = U.T
+    return _ray_z(P.T.take(lab, axis=1), X.T.copy(), U, S)
+
+
+def _ray_z(p: np.ndarray, x: np.ndarray, U: np.ndarray, S: np.ndarray, f: np.ndarray | None = None) -> np.ndarray:
+    """|range residual| in sigma of points to quadrics, as in :func:`_quick_fit`: the quadric's value over its
+    gradient's component along the ray (floored at ``_MIN_GRAZING`` of the gradient's norm), inf where undefined.
+
+    Laid out by rows, so that the element-wise products run on contiguous memory: ``p`` (10, N) each point's
+    quadric, or (10, 1) one for all; ``x`` (3, N) the points' coordinates; ``U`` (N, 3) unit rays; ``S`` (N,)
+    sigmas; ``f`` (N,) the quadric's values at the points, when already at hand.
+    """
+    x0, x1, x2 = x
     g0 = 2 * (p[0] * x0 + p[3] * x1 + p[4] * x2) + p[6]
     g1 = 2 * (p[3] * x0 + p[1] * x1 + p[5] * x2) + p[7]
     g2 = 2 * (p[4] * x0 + p[5] * x1 + p[2] * x2) + p[8]
-    f = (p[0] * x0 * x0 + p[1] * x1 * x1 + p[2] * x2 * x2
-         + 2 * (p[3] * x0 * x1 + p[4] * x0 * x2 + p[5] * x1 * x2)
-         + p[6] * x0 + p[7] * x1 + p[8] * x2 + p[9])
+    if f is None:
+        f = (p[0] * x0 * x0 + p[1] * x1 * x1 + p[2] * x2 * x2
+             + 2 * (p[3] * x0 * x1 + p[4] * x0 * x2 + p[5] * x1 * x2)
+             + p[6] * x0 + p[7] * x1 + p[8] * x2 + p[9])
+    u0, u1, u2 = U.T
     gr = np.abs(g0 * u0 + g1 * u1 + g2 * u2)
     floor = _MIN_GRAZING * np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -2222,10 +2226,11 @@ def _pixel_residuals(P: np.ndarray, lab: np.ndarray, X: np.ndarray, U: np.ndarra
     return np.where(np.isfinite(z), z, np.inf)
 
 
-def _refine_full(labels: np.ndarray, valid: np.ndarray, st: _State, jump_h, jump_v, params, d: int) -> np.ndarray:
+def _refine_full(labels: np.ndarray, valid: np.ndarray, st: _State, links, jump_h, jump_v, params,
+                 d: int) -> np.ndarray:
     """Full-resolution labels from the upsampled coarse ones: each patch is refitted on its full-resolution
     pixels, pixels off their patch's surface (beyond ``2 grow_k`` sigma: block corners across an edge) are
-    released and re-grown from their neighbours."""
+    released and re-grown from their neighbours (``links``: :func:`_neighbour_links` of the grid)."""
     labels = np.where(valid, labels, -1).astype(np.int32)
     n_lab = int(labels.max()) + 1
     if n_lab == 0:
@@ -2250,7 +2255,6 @@ def _refine_full(labels: np.ndarray, valid: np.ndarray, st: _State, jump_h, jump
     idx = idx[near[idx]]
     z = _pixel_residuals(P, flat[idx], st.X[idx], st.U[idx], st.S[idx])
     flat[idx[~(z <= 2.0 * params.grow_k)]] = -1
-    links = _neighbour_links(labels.shape, valid, jump_h, jump_v)
     _grow(labels, P, st, links, 2 * d + 2, 2.0 * params.grow_k)
     return labels
 

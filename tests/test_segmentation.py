@@ -669,7 +669,7 @@ def test_unique_pairs_equal_numpy_unique_rows(rows):
 def test_border_pixels_on_the_wrong_face_move_to_the_face_they_lie_on():
     """A label border four columns past a roof's crease: the columns of the other face that fit it clearly
     better go back to it; no pixel leaves the face it lies on, and a right labelling is left alone."""
-    from recognition.segmentation import _reassign, _State
+    from recognition.segmentation import _neighbour_links, _reassign, _State
 
     sigma = 2e-4
     n1, n2 = np.array([1.0, 0, -1.0]), np.array([-1.0, 0, -1.0])
@@ -685,15 +685,16 @@ def test_border_pixels_on_the_wrong_face_move_to_the_face_they_lie_on():
                 hk=np.ones(X.shape[0], np.int64), params=SegmentationParams())
     no_jump_h = np.zeros((CAM.height, CAM.width - 1), bool)
     no_jump_v = np.zeros((CAM.height - 1, CAM.width), bool)
+    links = _neighbour_links(valid.shape, valid, no_jump_h, no_jump_v)
 
-    out = _reassign(shifted, st, no_jump_h, no_jump_v, rounds=16, margin=1.0)
+    out = _reassign(shifted, st, links, no_jump_h, no_jump_v, rounds=16, margin=1.0)
     wrong_before = int((shifted != right).sum())
     wrong_after = int((out != right).sum())
     assert wrong_before == 4 * valid[:, crease].sum()
     assert wrong_after <= wrong_before // 4  # at most the column at the crease, which fits both faces
     assert not ((out != shifted) & (shifted == right)).any()  # nothing moved off its own face
-    assert np.array_equal(_reassign(right, st, no_jump_h, no_jump_v, rounds=16, margin=1.0), right)
-    assert np.array_equal(_reassign(shifted, st, no_jump_h, no_jump_v, rounds=0, margin=1.0), shifted)
+    assert np.array_equal(_reassign(right, st, links, no_jump_h, no_jump_v, rounds=16, margin=1.0), right)
+    assert np.array_equal(_reassign(shifted, st, links, no_jump_h, no_jump_v, rounds=0, margin=1.0), shifted)
 
 
 @pytest.mark.parametrize("field,value", [("reassign_rounds", -1), ("reassign_margin", float("nan")),
