@@ -284,13 +284,20 @@ def test_patch_subrays_equal_the_sensor_ray_directions(preset):
 
 
 
-def test_trimmed_rescue_runs_when_enabled_and_keeps_tori_oth_by_default():
+def test_elbow_is_oth_with_its_radii_and_vetoes_the_trimmed_rescue():
+    """A low-noise elbow has most of its points within 3.5 sigma of a cylinder: the trimmed rescue alone
+    (no torus) makes it CYL; the torus explains it, keeps it OTH and reports its bend and pipe radii."""
     p = sample_patch("torus", np.random.default_rng([944127]), "mockup_laser", n_max=2000, noise_scale=0.5)
-    assert classify_patch(p.points, p.sigma).label == "OTH"
-    r = classify_patch(p.points, p.sigma, params=SelectParams(min_inliers=0.8))
+    r = classify_patch(p.points, p.sigma)
     _check_result(r)
-    if r.label != "OTH":
-        assert r.details["trimmed_inlier_fraction"] >= 0.8
+    assert r.label == "OTH" and "torus" in r.reason
+    bend, bend_sigma = r.invariants["major_radius_m"]
+    pipe, _ = r.invariants["minor_radius_m"]
+    assert bend == pytest.approx(p.truth["major"], rel=0.01) and bend_sigma > 0
+    assert pipe == pytest.approx(p.truth["minor"], rel=0.01)
+    r = classify_patch(p.points, p.sigma, params=SelectParams(torus=False))
+    _check_result(r)
+    assert r.label == "CYL" and r.details["trimmed_inlier_fraction"] >= 0.8
 
 
 def _cylinder_with_correlated_noise(seed: int, window: int, radius: float = 0.04, sigma: float = 1.5e-3,
@@ -328,7 +335,7 @@ def test_correlated_errors_are_not_evidence_for_a_more_flexible_model():
         radius, sigma = r.invariants["radius_m"]
         assert radius == pytest.approx(0.04, rel=0.05)
         assert abs(radius - 0.04) <= 2.0 * sigma  # the reported sigma counts correlated points as fewer
-        labels.append(classify_patch(pts, sig).label)
+        labels.append(classify_patch(pts, sig, params=SelectParams(min_inliers=1.0)).label)  # the criterion alone
     assert sum(lab != "CYL" for lab in labels) >= 3, labels
 
 
