@@ -717,20 +717,24 @@ def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, ray
         fits["CONE"] = prim.fit_cone(ps, ss, ns, init=fits["CYL"] if fits["CYL"].ok else None, axes=axes,
                                      quadric=q, stop_above=cap(), **kw)
     cone = fits["CONE"]
-    if cone.ok and not skip_cone and (not fits["CYL"].ok or _chi2_of(cone) < _chi2_of(fits["CYL"])):
-        # the cylinder is the cone at half-angle 0: started on the cone's axis it may leave a wrong basin of its
-        # own starts (a near-cylinder that only the cone fitted)
+    if cone.ok and not skip_cone and (
+            not fits["CYL"].ok or _chi2_of(cone) + _price(n, params.criterion, rho) * rho < _chi2_of(fits["CYL"])):
+        # the cone would win: the cylinder is the cone at half-angle 0, and started on the cone's axis it may
+        # leave a wrong basin of its own starts (a near-cylinder that only the cone fitted)
         cyl = prim.fit_cylinder(ps, ss, init=(cone.point, cone.axis, cone.radius_at_point), **kw)
         if cyl.ok and (not fits["CYL"].ok or _chi2_of(cyl) < _chi2_of(fits["CYL"])):
             fits["CYL"] = cyl
     fits["SPH"] = prim.fit_sphere(ps, ss, stop_above=cap(), **kw)
     crit, gof = _criteria(fits, n, params, rho)
-    best = min(crit, key=crit.get)
-    if params.torus and fits["CYL"].ok and best != "PLAN" and (
-            gof[best] < 0.5 or prim.bend_gain(fits["CYL"], ps, ss, params.huber) / rho >=
-            params.torus_score_skip * 2.0 * _price(n, params.criterion, rho)):
-        # fitted when no primitive fits within noise, or when bending the cylinder's axis might pay for the
-        # torus's two extra parameters (a score test, as for the cone)
+    if params.torus and fits["CYL"].ok and min(crit, key=crit.get) != "PLAN":
+        gain, bend = prim.bend_test(fits["CYL"], ps, ss, params.huber)
+        # fitted only when bending the cylinder's axis might pay for the torus's two extra parameters (a
+        # score test, as for the cone) and bends it like an elbow (within 3x the largest elbow's bend)
+        fit_torus = (gain / rho >= params.torus_score_skip * 2.0 * _price(n, params.criterion, rho) and
+                     bend <= 3.0 * params.max_bend_ratio * fits["CYL"].radius)
+    else:
+        fit_torus = False
+    if fit_torus:
         fits["TOR"] = prim.fit_torus(ps, ss, ns, cylinder=fits["CYL"], stop_above=cap(), **kw)
         if fits["TOR"].ok and fits["TOR"].major_radius <= params.max_bend_ratio * fits["TOR"].minor_radius:
             crit, gof = _criteria(fits, n, params, rho)

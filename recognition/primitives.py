@@ -46,6 +46,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import minimize_scalar
+from scipy.spatial import cKDTree
 
 from .quadric import QuadricFit, canonicalise, check_patch, fit_quadric
 
@@ -60,7 +62,7 @@ __all__ = [
     "fit_sphere",
     "fit_cone",
     "fit_torus",
-    "bend_gain",
+    "bend_test",
     "axis_candidates",
     "trimmed_chi2",
     "refit_along_rays",
@@ -1051,6 +1053,15 @@ def _torus_fun(state, pts, sig):
     return (s - r) * isig, Jt.T
 
 
+def _torus_residuals(state, pts, sig):
+    """The residuals of :func:`_torus_fun` alone."""
+    c, a, R, r = state
+    q = pts - c
+    h = q @ a
+    rho = np.sqrt(np.maximum(np.einsum("ij,ij->i", q, q) - h * h, 0.0))
+    return (np.sqrt((rho - R) ** 2 + h * h) - r) / sig
+
+
 def _torus_retract(state, step):
     c, a, R, r = state
     e1, e2 = _perp_basis(a)
@@ -1060,8 +1071,6 @@ def _torus_retract(state, step):
 
 def _estimate_normals(pts: np.ndarray, k: int = 12) -> np.ndarray:
     """Unit normals (unoriented) from the PCA of each point's ``k`` nearest neighbours."""
-    from scipy.spatial import cKDTree
-
     k = min(k, len(pts))
     _, idx = cKDTree(pts).query(pts, k=k)
     nb = pts[idx] - pts[idx].mean(axis=1, keepdims=True)
@@ -1069,19 +1078,26 @@ def _estimate_normals(pts: np.ndarray, k: int = 12) -> np.ndarray:
     return vecs[:, :, 0]
 
 
-def _torus_start(pts, sig, nrm, r: float):
+def _torus_start(pts, w, nrm, r: float):
     """Start ``(centre, axis, R, r)`` for the tube radius ``r``: each point moved by ``r`` against its
-    outward normal ``nrm`` lies near the tube's centre circle; a plane fit of the moved points gives the
-    axis, a circle fit in that plane the centre and ``R``. None when there is no ring torus."""
-    w = 1.0 / sig**2
+    outward normal ``nrm`` lies near the tube's centre circle; a plane fit of the moved points (weights
+    ``w``) gives the axis, an algebraic circle fit in that plane the centre and ``R``. None when there is no
+    ring torus."""
     spine = pts - r * nrm
     m = (w @ spine) / w.sum()
     y = spine - m
     _, v = np.linalg.eigh((y * w[:, None]).T @ y)
-    centre, R = _circle_init(spine, w, v[:, 0])
-    if not (np.isfinite(R) and R > r and np.all(np.isfinite(centre))):
+    u1, u2 = y @ v[:, 1], y @ v[:, 2]
+    A = np.stack([2.0 * u1, 2.0 * u2, np.ones_like(u1)], axis=1)
+    Aw = A * w[:, None]
+    try:
+        cu, cv, c0 = np.linalg.solve(Aw.T @ A, Aw.T @ (u1 * u1 + u2 * u2))
+    except np.linalg.LinAlgError:
         return None
-    return centre, v[:, 0], float(R), float(r)
+    R = float(np.sqrt(max(c0 + cu * cu + cv * cv, 0.0)))
+    if not (np.isfinite(R) and R > r):
+        return None
+    return m + cu * v[:, 1] + cv * v[:, 2], v[:, 0], R, float(r)
 
 
 def _bend_step(pts, sig, cyl: CylinderFit, huber: float | None):
@@ -1109,13 +1125,17 @@ def _bend_step(pts, sig, cyl: CylinderFit, huber: float | None):
     return sol[5] * e1 + sol[6] * e2, float(res5 @ res5 - res7 @ res7)
 
 
-def bend_gain(cylinder: CylinderFit, points: np.ndarray, sigma: np.ndarray | float, huber: float | None = 3.0) -> float:
-    """Score test of a torus against a fitted cylinder: the decrease of the (Huber-weighted) chi² that bending
-    the cylinder's axis predicts (one linear least-squares step, see :func:`fit_torus`); 0 for a failed fit."""
+def bend_test(cylinder: CylinderFit, points: np.ndarray, sigma: np.ndarray | float,
+              huber: float | None = 3.0) -> tuple[float, float]:
+    """Score test of a torus against a fitted cylinder: bending the cylinder's axis by one linear
+    least-squares step (see :func:`fit_torus`). Returns the decrease of the (Huber-weighted) chi² it
+    predicts and the bend radius of that step, metres (``(0, inf)`` for a failed fit)."""
     pts, sig, _ = check_patch(points, sigma, None)
     if not cylinder.ok or len(pts) < 8:
-        return 0.0
-    return max(_bend_step(pts, sig, cylinder, huber)[1], 0.0)
+        return 0.0, np.inf
+    beta, gain = _bend_step(pts, sig, cylinder, huber)
+    nb = float(np.linalg.norm(beta))
+    return max(gain, 0.0), (1.0 / (2.0 * nb) if nb > 0 else np.inf)
 
 
 def _bent_cylinder_start(pts, sig, cyl: CylinderFit, huber: float | None):
@@ -1135,11 +1155,11 @@ def _bent_cylinder_start(pts, sig, cyl: CylinderFit, huber: float | None):
 def _torus_starts(pts, sig, nrm, r0: float, huber: float | None) -> list:
     """Starts for a tube radius near ``r0`` (an elbow's best cylinder may be far off): the start's cost over
     a log grid of radii from ``r0 / 4`` to ``4 r0``, refined by a bounded scalar search around the best."""
-    from scipy.optimize import minimize_scalar
+    w = 1.0 / sig**2
 
     def cost(log_r):
-        st = _torus_start(pts, sig, nrm, float(np.exp(log_r)))
-        return 1e200 if st is None else _huber_cost(_torus_fun(st, pts, sig)[0], huber)
+        st = _torus_start(pts, w, nrm, float(np.exp(log_r)))
+        return 1e200 if st is None else _huber_cost(_torus_residuals(st, pts, sig), huber)
 
     grid = np.log(r0) + np.linspace(np.log(0.25), np.log(4.0), 7)
     costs = np.array([cost(g) for g in grid])
@@ -1147,9 +1167,9 @@ def _torus_starts(pts, sig, nrm, r0: float, huber: float | None) -> list:
         return []
     k = int(np.argmin(costs))
     lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
-    best = minimize_scalar(cost, bounds=(lo, hi), method="bounded", options={"xatol": 0.02})
+    best = minimize_scalar(cost, bounds=(lo, hi), method="bounded", options={"xatol": 0.02, "maxiter": 12})
     log_r = best.x if best.fun <= costs[k] else grid[k]
-    return [st for st in (_torus_start(pts, sig, nrm, float(np.exp(log_r))),) if st is not None]
+    return [st for st in (_torus_start(pts, w, nrm, float(np.exp(log_r))),) if st is not None]
 
 
 def fit_torus(
@@ -1207,8 +1227,11 @@ def fit_torus(
     crs = _subsample(len(ps), _INIT_POINTS)  # the starts are chosen on a coarse subset
     pc, sc = (ps, ss) if crs is None else (ps[crs], ss[crs])
     nc = None if nrm is None else (nrm if sub is None else nrm[sub])
-    nc = None if nc is None or crs is None else nc[crs]
-    if nc is None or not np.all(np.isfinite(nc)):
+    nc = nc if nc is None or crs is None else nc[crs]
+    if nc is not None and not np.all(np.isfinite(nc)):
+        good = np.all(np.isfinite(nc), axis=1)  # the starts need only some points with normals
+        pc, sc, nc = (pc[good], sc[good], nc[good]) if good.sum() >= max(8, len(good) // 2) else (pc, sc, None)
+    if nc is None:
         nc = _estimate_normals(pc)
     nc = nc * np.where(np.einsum("ij,ij->i", nc, pc - vp) > 0, -1.0, 1.0)[:, None]  # outward: facing the viewer
     starts = _torus_starts(pc, sc, nc, cylinder.radius, huber)
