@@ -30,7 +30,11 @@ reduced chi² below ``gof_factor + gof_z sqrt(2 / dof)``, a tolerance for model 
 plausibility ``g``; a model's probability is ``posterior * g`` and OTH gets the posterior of the quadric
 plus all the mass that failed the test, so elbows (tori) and unknown shapes stay OTH. The cone is nested with
 the cylinder (half-angle 0) and started from the cylinder fit, so the criterion chooses the cone exactly when
-the data pay for its extra parameter.
+the data pay for its extra parameter. A ring torus (:func:`recognition.primitives.fit_torus`, k = 7) competes as
+a second model of OTH where bending the cylinder's axis passes a score test: a pipe elbow it explains is OTH
+with its bend and pipe radii as invariants (``major_radius_m``, ``minor_radius_m``). A patch that would be OTH
+but whose majority (``min_inliers``) one primitive fits within noise after least-trimmed-squares steps takes
+that primitive's label (a neighbour merged in by the segmenter), unless the torus explains it (an elbow).
 
 Both methods fit on a regular-stride subsample of at most ``max_points`` points (the information criterion
 then works with that N: the decision is that of a patch of ``max_points`` points), and the chosen primitive
