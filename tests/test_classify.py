@@ -351,3 +351,21 @@ def test_window_interior_leaves_out_half_a_window_at_every_patch_border():
     want[4:10, 5:11] = True
     want[4:10, 15:23] = True
     np.testing.assert_array_equal(inner, want)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_merged_neighbour_is_rescued_by_its_majority(seed):
+    """A cylinder patch with 15 % of its pixels from a surface 8 sigma behind (a merged neighbour): no model
+    fits all points (OTH without the trimmed rescue); the least-trimmed-squares steps find the cylinder of the
+    majority, with its radius."""
+    p = sample_patch("cylinder", np.random.default_rng(seed), "factory_scanner", n_max=2000)
+    pts = p.points.copy()
+    u = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    k = np.random.default_rng(100 + seed).choice(len(pts), int(0.15 * len(pts)), replace=False)
+    pts[k] += (8.0 * p.sigma[k])[:, None] * u[k]
+    assert classify_patch(pts, p.sigma, params=SelectParams(min_inliers=1.0)).label == "OTH"
+    r = classify_patch(pts, p.sigma)
+    _check_result(r)
+    assert r.label == "CYL"
+    assert 0.8 <= r.details["trimmed_inlier_fraction"] <= 0.95
+    assert r.invariants["radius_m"][0] == pytest.approx(p.truth["radius"], rel=0.02)

@@ -291,3 +291,15 @@ def test_torus_major_radius_sigma_is_the_first_order_one():
             preds.append(fit_torus(noisy, p.sigma).major_radius_sigma)
     ratio = np.median(preds) / np.std(steps, ddof=1)
     assert abs(ratio - 1) < 0.2, f"bend radius: predicted/linearised MC = {ratio:.3f}"
+
+
+def test_bend_test_tells_an_elbow_from_a_straight_tube():
+    """Bending a fitted cylinder's axis predicts a large chi² decrease on an elbow, with a bend radius of the
+    elbow's order, and next to none on a straight tube."""
+    p = sample_patch("torus", np.random.default_rng(2), "factory_scanner")
+    gain, bend = prim.bend_test(fit_cylinder(p.points, p.sigma), p.points, p.sigma)
+    assert gain > 100 and 0.3 * p.truth["major"] < bend < 3 * p.truth["major"]
+    p = sample_patch("cylinder", np.random.default_rng(2), "factory_scanner")
+    gain, bend = prim.bend_test(fit_cylinder(p.points, p.sigma), p.points, p.sigma)
+    assert gain < 2 * np.log(len(p.points))
+    assert prim.bend_test(prim._fail_cylinder(10, "x"), p.points, p.sigma) == (0.0, np.inf)
