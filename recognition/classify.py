@@ -253,7 +253,8 @@ class PatchClassification:
         The dedicated fit of the label (None for OTH).
     invariants : dict[str, tuple[float, float]]
         ``name -> (value, sigma)``: ``radius_m``, ``length_m`` (cylinder); ``radius_m`` (sphere);
-        ``half_angle_rad``, ``length_m`` (cone).
+        ``half_angle_rad``, ``length_m`` (cone); ``major_radius_m``, ``minor_radius_m`` (OTH that a torus
+        explains: a pipe elbow's bend and pipe radii).
     reason : str
         Why OTH or why degenerate; "" otherwise.
     details : dict
