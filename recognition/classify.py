@@ -81,7 +81,7 @@ __all__ = [
 
 CLASSES = ("PLAN", "CYL", "SPH", "CONE", "OTH")
 
-Primitive = prim.PlaneFit | prim.CylinderFit | prim.SphereFit | prim.ConeFit
+Primitive = prim.PlaneFit | prim.CylinderFit | prim.SphereFit | prim.ConeFit | prim.TorusFit
 
 
 @dataclass(frozen=True)
@@ -249,8 +249,8 @@ class PatchClassification:
     plausibilities : dict[str, float]
         ``P(cyl)``, ``P(sphere)``, ``P(cone)`` (keys ``"CYL"``, ``"SPH"``, ``"CONE"``): the paper's
         plausibilities, or the posterior probabilities for ``select``.
-    primitive : PlaneFit | CylinderFit | SphereFit | ConeFit | None
-        The dedicated fit of the label (None for OTH).
+    primitive : PlaneFit | CylinderFit | SphereFit | ConeFit | TorusFit | None
+        The dedicated fit of the label; for OTH the torus of a pipe elbow, or None.
     invariants : dict[str, tuple[float, float]]
         ``name -> (value, sigma)``: ``radius_m``, ``length_m`` (cylinder); ``radius_m`` (sphere);
         ``half_angle_rad``, ``length_m`` (cone); ``major_radius_m``, ``minor_radius_m`` (OTH that a torus
@@ -845,8 +845,8 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
             k = params.invariant_sigma_scale * math.sqrt(max(1.0, min(extra.get("correlation_area", 1.0), len(pts))))
             why = (f"a torus (pipe elbow) explains the points: bend radius {t.major_radius * 1e3:.4g} mm, pipe "
                    f"radius {t.minor_radius * 1e3:.4g} mm")
-            return _result("OTH", probs, plaus, None, {"major_radius_m": (t.major_radius, k * t.major_radius_sigma),
-                                                       "minor_radius_m": (t.minor_radius, k * t.minor_radius_sigma)},
+            return _result("OTH", probs, plaus, t, {"major_radius_m": (t.major_radius, k * t.major_radius_sigma),
+                                                    "minor_radius_m": (t.minor_radius, k * t.minor_radius_sigma)},
                            why, details)
         best = min((c for c in crit if c not in ("OTH", "TOR")), key=crit.get, default=None)
         if best is not None and gof.get(best, 0.0) < 0.5:

@@ -46,6 +46,13 @@ def test_describe_with_a_model_localises_and_detects_changes(saved_trial, capsys
     assert (out / "changes.png").stat().st_size > 0
     printed = capsys.readouterr().out
     assert "pose: sensor at" in printed and "change:" in printed
+    # the mock-up's elbow (bend radius 70 mm, pipe radius 25 mm) is OTH with its torus and radii
+    elbows = [p for p in doc["patches"] if p["primitive"] and p["primitive"]["type"] == "TorusFit"]
+    assert elbows and all(p["label"] == "OTH" for p in elbows)
+    big = max(elbows, key=lambda p: p["n_pixels"])
+    assert big["invariants"]["major_radius_m"]["value"] == pytest.approx(0.07, rel=0.1)
+    assert big["invariants"]["minor_radius_m"]["value"] == pytest.approx(0.025, rel=0.05)
+    assert "elbow: bend R = " in (out / "table.md").read_text()
 
 
 def test_describe_with_a_bad_model_fails_before_any_work(saved_trial, tmp_path, capsys):

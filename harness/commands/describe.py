@@ -248,6 +248,9 @@ def _main_parameter(patch) -> str:
     prim = patch.classification.primitive
     if "radius_m" in inv:
         return f"r = {1e3 * inv['radius_m'][0]:.1f} ± {1e3 * inv['radius_m'][1]:.1f} mm"
+    if "major_radius_m" in inv:
+        return (f"elbow: bend R = {1e3 * inv['major_radius_m'][0]:.1f} ± {1e3 * inv['major_radius_m'][1]:.1f} mm, "
+                f"pipe r = {1e3 * inv['minor_radius_m'][0]:.1f} ± {1e3 * inv['minor_radius_m'][1]:.1f} mm")
     if "half_angle_rad" in inv:
         a, sa = (math.degrees(x) for x in inv["half_angle_rad"])
         return f"half-angle = {a:.1f} ± {sa:.1f} deg"
