@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.ndimage as ndi
 
-from recognition.classify import PaperParams, PatchClassification, SelectParams, classify_patch
+from recognition.classify import PaperParams, PatchClassification, SelectParams, classify_patch, merge_test
 from recognition.segmentation import Segmentation, SegmentationParams, SurfaceType, segment
 from sensors.config import MAX_PIXELS
 from sensors.range_image import Scan
@@ -37,6 +37,12 @@ class DescribeParams:
     max_pixels : largest image (H x W) accepted. The segmentation's working memory grows with the pixel count
         (about ``BYTES_PER_PIXEL``; measured 1.5 GB peak for 2000 x 2000), so a larger image is refused with
         a clear error up front rather than exhausting the machine's memory part-way; raise it knowingly.
+    merge_explained : with the ``select`` classifier, merge touching patches of one label that one dedicated
+        primitive explains (:func:`recognition.classify.merge_test`): a pipe or wall the segmenter's quadric
+        and plane fits left in pieces. The description's labels are then the merged ones (the segmentation's
+        stay in :attr:`SceneDescription.segmentation`). On the ``calibration`` suite (seed 4242, never
+        ``default``; DESIGN 10.8) it raised the pooled correct detection 0.730 -> 0.743 (factory scanner
+        0.715 -> 0.740); 8-neighbour contact measured the same as within 2 pixels, and cones added nothing.
     """
 
     classifier: str = "select"
@@ -44,6 +50,7 @@ class DescribeParams:
     classifier_params: SelectParams | PaperParams | None = None
     min_classify_pixels: int = 30
     max_pixels: int = MAX_PIXELS
+    merge_explained: bool = True
 
     def __post_init__(self):
         if not isinstance(self.classifier, str) or self.classifier not in CLASSIFIERS:
@@ -89,7 +96,8 @@ class ScenePatch:
 
 @dataclass(frozen=True)
 class SceneDescription:
-    """Patches of one range image, their label image and the segmentation they came from."""
+    """Patches of one range image, their label image (the segmentation's, after ``merge_explained``) and the
+    segmentation they came from."""
 
     patches: tuple[ScenePatch, ...]
     labels: np.ndarray
@@ -142,30 +150,111 @@ def describe(scan: Scan, params: DescribeParams = DescribeParams(),
     flat_normals = segmentation.normals.reshape(-1, 3)
     offsets = _footprint_offsets(scan.noise) if params.classifier == "select" else None
     window = scan.noise.matching_window_px
+
+    def classify(pix: np.ndarray, surface_type: SurfaceType, interior: np.ndarray | None) -> PatchClassification:
+        if len(pix) < params.min_classify_pixels:
+            return _too_small(len(pix))
+        # fitted on the pixels whose matching window stays on the patch, when enough of them remain
+        use = slice(None)
+        inner = None if interior is None else interior[pix]
+        if inner is not None and inner.sum() >= max(params.min_classify_pixels, 0.25 * len(pix)):
+            use = inner
+        rows, cols = np.unravel_index(pix[use], scan.range.shape)
+        return classify_patch(flat_points[pix[use]], np.maximum(flat_sigma[pix[use]], 1e-6),
+                              flat_normals[pix[use]], method=params.classifier, params=params.classifier_params,
+                              planar_hint=surface_type == SurfaceType.PLANAR,
+                              correlation_area=scan.noise.correlation_area,
+                              rays=None if offsets is None else functools.partial(
+                                  patch_subrays, scan.sensor, offsets, rows, cols))
+
     interior = window_interior(segmentation.labels, window).ravel() if window > 1 else None
     patches = []
     for seg_patch in segmentation.patches:
         pix = np.ravel_multi_index((seg_patch.pixels[:, 0], seg_patch.pixels[:, 1]), scan.range.shape)
-        pts, sig = flat_points[pix], flat_sigma[pix]
-        planar = seg_patch.surface_type == SurfaceType.PLANAR
-        if len(pix) < params.min_classify_pixels:
-            cls = _too_small(len(pix))
-        else:
-            # fitted on the pixels whose matching window stays on the patch, when enough of them remain
-            use = slice(None)
-            inner = None if interior is None else interior[pix]
-            if inner is not None and inner.sum() >= max(params.min_classify_pixels, 0.25 * len(pix)):
-                use = inner
-            rows, cols = seg_patch.pixels[use, 0], seg_patch.pixels[use, 1]
-            cls = classify_patch(pts[use], np.maximum(sig[use], 1e-6), flat_normals[pix[use]],
-                                 method=params.classifier, params=params.classifier_params, planar_hint=planar,
-                                 correlation_area=scan.noise.correlation_area,
-                                 rays=None if offsets is None else functools.partial(
-                                     patch_subrays, scan.sensor, offsets, rows, cols))
-        patches.append(ScenePatch(seg_patch.id, pix, pts, sig, SurfaceType(seg_patch.surface_type), cls,
-                                  seg_patch.small, seg_patch.noisy))
+        stype = SurfaceType(seg_patch.surface_type)
+        patches.append(ScenePatch(seg_patch.id, pix, flat_points[pix], flat_sigma[pix], stype,
+                                  classify(pix, stype, interior), seg_patch.small, seg_patch.noisy))
+    labels = segmentation.labels
+    if params.merge_explained and params.classifier == "select":
+        patches, labels = _merge_explained(patches, labels, params, scan.noise.correlation_area, classify,
+                                           window)
     timing["classification"] = time.perf_counter() - t0
-    return SceneDescription(tuple(patches), segmentation.labels, segmentation, sigma, timing)
+    return SceneDescription(tuple(patches), labels, segmentation, sigma, timing)
+
+
+MERGE_LABELS = ("PLAN", "CYL", "SPH", "CONE")
+
+
+def _touching_pairs(labels: np.ndarray, min_contacts: int = 3) -> list[tuple[int, int]]:
+    """Pairs ``(a, b)``, ``a < b``, of patches with at least ``min_contacts`` 8-neighbour pixel contacts."""
+    H, W = labels.shape
+    n = int(labels.max()) + 1
+    codes = []
+    for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
+        a = labels[: H - dr, max(0, -dc): W - max(0, dc)]
+        b = labels[dr:, max(0, dc): W - max(0, -dc)]
+        m = (a >= 0) & (b >= 0) & (a != b)
+        lo, hi = np.minimum(a[m], b[m]).astype(np.int64), np.maximum(a[m], b[m]).astype(np.int64)
+        codes.append(lo * n + hi)
+    u, c = np.unique(np.concatenate(codes), return_counts=True)
+    return [(int(x // n), int(x % n)) for x in u[c >= min_contacts]]
+
+
+def _merge_explained(patches: list, labels: np.ndarray, params: DescribeParams, correlation_area: float, classify,
+                     window: int) -> tuple[list, np.ndarray]:
+    """Merge touching patches of one primitive label that one dedicated primitive explains, best first (the most
+    negative criterion gain), until no pair passes :func:`recognition.classify.merge_test`; the merged patches
+    are classified again. Returns the patches (in the original order, merged ones in place of their first part)
+    and the label image."""
+    sp = params.classifier_params if isinstance(params.classifier_params, SelectParams) else SelectParams()
+    by_id = {p.id: p for p in patches}
+    fits = {p.id: p.classification.primitive for p in patches
+            if p.label in MERGE_LABELS and p.classification.primitive is not None}
+    labels = labels.copy()
+    merged: set[int] = set()
+    tested: dict[tuple[int, int], tuple | None] = {}
+    while True:
+        best = None
+        for a, b in _touching_pairs(labels):
+            pa, pb = by_id[a], by_id[b]
+            if pa.label != pb.label or a not in fits or b not in fits:
+                continue
+            if (a, b) not in tested:
+                big, small = (pa, pb) if pa.n_pixels >= pb.n_pixels else (pb, pa)
+                tested[(a, b)] = merge_test(fits[big.id], big.points, np.maximum(big.sigma, 1e-6), fits[small.id],
+                                            small.points, np.maximum(small.sigma, 1e-6), sp, correlation_area)
+            got = tested[(a, b)]
+            if got is not None and (best is None or got[1] < best[0]):
+                best = (got[1], a, b, got[0])
+        if best is None:
+            break
+        _, a, b, union = best
+        pa, pb = by_id[a], by_id.pop(b)
+        labels[labels == b] = a
+        pix = np.concatenate([pa.pixels, pb.pixels])
+        big = pa if pa.n_pixels >= pb.n_pixels else pb
+        by_id[a] = ScenePatch(a, pix, np.concatenate([pa.points, pb.points]), np.concatenate([pa.sigma, pb.sigma]),
+                              big.surface_type, pa.classification,
+                              len(pix) < params.segmentation.min_patch_pixels, big.noisy)
+        fits[a] = union
+        fits.pop(b, None)
+        merged.add(a)
+        merged.discard(b)
+        tested = {k: v for k, v in tested.items() if a not in k and b not in k}
+    if not merged:
+        return patches, labels
+    interior = window_interior(labels, window).ravel() if window > 1 else None
+    out = []
+    for p in patches:
+        q = by_id.get(p.id)
+        if q is None:
+            continue  # merged into another patch
+        if p.id in merged:
+            order = np.argsort(q.pixels, kind="stable")  # raster order, as the segmentation's patches
+            q = ScenePatch(q.id, q.pixels[order], q.points[order], q.sigma[order], q.surface_type,
+                           classify(q.pixels[order], q.surface_type, interior), q.small, q.noisy)
+        out.append(q)
+    return out, labels
 
 
 def window_interior(labels: np.ndarray, window: int) -> np.ndarray:
