@@ -52,9 +52,9 @@ frame's time), and (4) the cone is fitted only when a score test at the cylinder
 win (``cone_score_skip``). With the sensor's sub-ray directions (``rays``), (5) a chosen cylinder or sphere
 is refitted in range space with the beam footprint modelled (:func:`recognition.primitives.refit_along_rays`):
 the geometric fit's radius was 2.1 % low (median) at factory-scanner resolution, the refit's is within
-0.02 %. Cost: 0.1-0.3 s of CPU per VGA frame (``time.process_time``, single-threaded BLAS; a
-multi-threaded BLAS on a loaded 2-core machine inflates process time 1.5-2x by spinning threads);
-``paper`` about 0.1-0.2 s.
+0.02 %. Cost on the ``default`` suite's VGA frames: median 0.14 s of CPU, p90 0.4 s, with the torus and the
+trimmed rescue (``time.process_time``, single-threaded BLAS; a multi-threaded BLAS on a loaded 2-core machine
+inflates process time 1.5-2x by spinning threads); ``paper`` about 0.1-0.2 s.
 
 The invariants' visible length has a heuristic sigma: the point spacing ``sqrt(L W / N)`` (W the patch
 width across the axis), since the length is set by the patch ends, not by the fit.
