@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from recognition import primitives as prim
 from recognition._synthetic import sample_patch
@@ -303,3 +305,22 @@ def test_bend_test_tells_an_elbow_from_a_straight_tube():
     gain, bend = prim.bend_test(fit_cylinder(p.points, p.sigma), p.points, p.sigma)
     assert gain < 2 * np.log(len(p.points))
     assert prim.bend_test(prim._fail_cylinder(10, "x"), p.points, p.sigma) == (0.0, np.inf)
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(8, 300), shape=st.sampled_from(["cube", "line", "plane", "blob"]))
+def test_torus_fit_never_raises_on_odd_point_sets(seed, n, shape):
+    """Point sets that are no tube (scattered, nearly collinear, planar, a tiny blob) give a fit or a reason."""
+    g = np.random.default_rng(seed)
+    if shape == "cube":
+        pts = g.uniform(-1, 1, (n, 3)) + [0, 0, 3]
+    elif shape == "line":
+        pts = np.outer(g.uniform(0, 1, n), [1, 2, 3]) + [0, 0, 3] + g.normal(0, 1e-6, (n, 3))
+    elif shape == "plane":
+        pts = np.c_[g.uniform(-1, 1, (n, 2)), np.zeros(n)] + [0, 0, 2]
+    else:
+        pts = g.normal(0, 1e-3, (n, 3)) + [0, 0, 1]
+    f = fit_torus(pts, 1e-3)
+    assert isinstance(f.ok, bool) and (f.ok or f.reason)
+    if f.ok:
+        assert f.major_radius > f.minor_radius > 0 and np.isfinite(f.cov).all()
