@@ -1,4 +1,4 @@
-"""Dedicated fits of planes, cylinders, spheres and cones with parameter covariance.
+"""Dedicated fits of planes, cylinders, spheres, cones and ring tori (pipe elbows) with parameter covariance.
 
 Every fit minimises the (Huber-robustified) sum of squared sigma-normalised orthogonal distances with a
 small Levenberg-Marquardt solver on a manifold (axes are updated by a rotation in the plane orthogonal to
