@@ -2018,19 +2018,29 @@ def _axial_cut(x: np.ndarray, s: np.ndarray, point: np.ndarray, axis: np.ndarray
     tol = np.maximum(3.0 * 1.25 * np.bincount(b, weights=s, minlength=nb)[full] / cnt[full] ** 1.5,
                      flat_fraction * radius)
 
-    def worst(lo: int, hi: int) -> float:
-        """Largest deviation (in tolerances) of slices lo..hi-1 from their weighted line."""
-        c = np.polyfit(full[lo:hi], med[lo:hi], 1, w=np.sqrt(cnt[full[lo:hi]]))
-        return float(np.max(np.abs(np.polyval(c, full[lo:hi]) - med[lo:hi]) / tol[lo:hi]))
-
     m = full.size
-    whole = worst(0, m)
+    whole = _line_misfit(full, med, cnt[full], tol, np.array([m]))[0]
     if whole <= 1.0:
         return None
-    cost, k = min((max(worst(0, k), worst(k, m)), k) for k in range(min_bins, m - min_bins + 1))
-    if cost >= whole / 2:
+    cuts = np.arange(min_bins, m - min_bins + 1)
+    costs = np.maximum(_line_misfit(full, med, cnt[full], tol, cuts),
+                       _line_misfit(full[::-1], med[::-1], cnt[full][::-1], tol[::-1], m - cuts))
+    j = int(np.argmin(costs))
+    if costs[j] >= whole / 2:
         return None  # no cut explains the profile much better than one surface does
-    return (b >= full[k]).astype(np.int64)
+    return (b >= full[cuts[j]]).astype(np.int64)
+
+
+def _line_misfit(x: np.ndarray, y: np.ndarray, w: np.ndarray, tol: np.ndarray, ends: np.ndarray) -> np.ndarray:
+    """For each ``e`` in ``ends``: the largest deviation, in ``tol`` units, of ``y[:e]`` from its line fitted by
+    least squares weighted by ``w`` (counts), all prefixes at once from cumulative sums."""
+    x = x.astype(np.float64)
+    c = np.cumsum(np.stack([w, w * x, w * y, w * x * x, w * x * y]), axis=1)
+    s0, sx, sy, sxx, sxy = c[:, ends - 1]
+    slope = (s0 * sxy - sx * sy) / (s0 * sxx - sx * sx)
+    icpt = (sy - slope * sx) / s0
+    dev = np.abs(icpt[:, None] + slope[:, None] * x[None, :] - y[None, :]) / tol[None, :]
+    return np.where(np.arange(len(x))[None, :] < ends[:, None], dev, -np.inf).max(axis=1)
 
 
 def _split_disconnected(labels: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -745,3 +745,20 @@ def test_trim_threshold_is_max_of_trim_and_three_medians(z, trim):
 
     z = np.array(z)
     assert _trim_threshold(z, trim) == max(trim, 3.0 * float(np.median(z)))
+
+
+@settings(max_examples=30, deadline=None, derandomize=True)
+@given(seed=st.integers(0, 2**32 - 1), m=st.integers(3, 60))
+def test_line_misfit_of_all_prefixes_matches_weighted_polyfit(seed, m):
+    from recognition.segmentation import _line_misfit
+
+    g = np.random.default_rng(seed)
+    x = np.sort(g.choice(200, m, replace=False))
+    y = g.normal(0.1, 0.01, m) + 1e-3 * x
+    w = g.integers(20, 60, m).astype(np.float64)
+    tol = g.uniform(1e-3, 5e-3, m)
+    ends = np.arange(2, m + 1)
+    got = _line_misfit(x, y, w, tol, ends)
+    for e, v in zip(ends, got, strict=True):
+        c = np.polyfit(x[:e], y[:e], 1, w=np.sqrt(w[:e]))
+        assert v == pytest.approx(np.max(np.abs(np.polyval(c, x[:e]) - y[:e]) / tol[:e]), rel=1e-6, abs=1e-9)
