@@ -631,8 +631,7 @@ def _trim_refit(fit, ps, ss, ns, params: SelectParams, n: int):
         return None
     chi2 = float(np.sum(r[mask] ** 2))
     dof = max(m - fit.n_params, 1)
-    thr = params.gof_factor + params.gof_z * np.sqrt(2.0 / dof)
-    if not chi2 / dof <= thr:
+    if not chi2 / dof <= _gof_threshold(params, dof):
         return None
     return fit, frac
 
@@ -692,7 +691,7 @@ def merge_test(fit_a: Primitive, points_a: np.ndarray, sigma_a: np.ndarray, fit_
     rho = max(1.0, float(correlation_area) * n / len(pts))
     chi2 = prim.trimmed_chi2(r)
     dof = max(n - k, 1)
-    if not chi2 / dof <= params.gof_factor + params.gof_z * np.sqrt(2.0 / dof):
+    if not chi2 / dof <= _gof_threshold(params, dof):
         return None
     gain = (chi2 - prim.trimmed_chi2(ra) - prim.trimmed_chi2(rb)) / rho - k * _price(n, params.criterion, rho)
     return (union, float(gain)) if gain < 0 else None
@@ -766,9 +765,9 @@ def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, ray
     else:
         fits["CONE"] = prim.fit_cone(ps, ss, ns, init=fits["CYL"] if fits["CYL"].ok else None, axes=axes,
                                      quadric=q, stop_above=cap(), **kw)
-    cone = fits["CONE"]
-    if cone.ok and not skip_cone and (
-            not fits["CYL"].ok or _chi2_of(cone) + _price(n, params.criterion, rho) * rho < _chi2_of(fits["CYL"])):
+    cone, cyl0 = fits["CONE"], fits["CYL"]
+    if cone.ok and not skip_cone and (not cyl0.ok or _criterion(_chi2_of(cone), cone.n_params, n, params.criterion, rho)
+                                      < _criterion(_chi2_of(cyl0), cyl0.n_params, n, params.criterion, rho)):
         # the cone would win: the cylinder is the cone at half-angle 0, and started on the cone's axis it may
         # leave a wrong basin of its own starts (a near-cylinder that only the cone fitted)
         cyl = prim.fit_cylinder(ps, ss, init=(cone.point, cone.axis, cone.radius_at_point), **kw)
@@ -820,9 +819,13 @@ def _criteria(fits, n: int, params: SelectParams, rho: float = 1.0) -> tuple[dic
             chi2 = _chi2_of(f)
             crit[c] = _criterion(chi2, f.n_params, n, params.criterion, rho)
             dof = max(n - f.n_params, 1)
-            thr = params.gof_factor + params.gof_z * np.sqrt(2.0 / dof)
-            gof[c] = _gof(chi2 / dof, thr, params.gof_width)
+            gof[c] = _gof(chi2 / dof, _gof_threshold(params, dof), params.gof_width)
     return crit, gof
+
+
+def _gof_threshold(params: SelectParams, dof: int) -> float:
+    """Largest reduced chi² of a model that fits within noise: ``gof_factor + gof_z sqrt(2 / dof)``."""
+    return params.gof_factor + params.gof_z * np.sqrt(2.0 / dof)
 
 
 def _gof(red: float, thr: float, width: float) -> float:

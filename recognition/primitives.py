@@ -1101,7 +1101,8 @@ def _torus_start(pts, w, nrm, r: float):
 
 
 def _bend_step(pts, sig, cyl: CylinderFit, huber: float | None):
-    """One weighted least-squares step of the cylinder bent along its axis: ``(beta, gain)``.
+    """One weighted least-squares step of the cylinder bent along its axis: ``(direction, R, gain)``, the unit
+    direction of the bend across the axis and its radius ``R`` (inf for no bend).
 
     Near a point of its centre circle a torus is the cylinder tangent there with the axis bent by
     ``h² / (2 R)`` towards the centre (``h`` along the axis): the cylinder's residuals plus ``h² (beta . n)``
@@ -1122,7 +1123,9 @@ def _bend_step(pts, sig, cyl: CylinderFit, huber: float | None):
     sol, *_ = np.linalg.lstsq(A, b, rcond=None)
     sol5, *_ = np.linalg.lstsq(A[:, :5], b, rcond=None)
     res7, res5 = b - A @ sol, b - A[:, :5] @ sol5
-    return sol[5] * e1 + sol[6] * e2, float(res5 @ res5 - res7 @ res7)
+    beta = sol[5] * e1 + sol[6] * e2
+    nb = float(np.linalg.norm(beta))
+    return (beta / nb if nb > 0 else beta), (1.0 / (2.0 * nb) if nb > 0 else np.inf), float(res5 @ res5 - res7 @ res7)
 
 
 def bend_test(cylinder: CylinderFit, points: np.ndarray, sigma: np.ndarray | float,
@@ -1133,23 +1136,20 @@ def bend_test(cylinder: CylinderFit, points: np.ndarray, sigma: np.ndarray | flo
     pts, sig, _ = check_patch(points, sigma, None)
     if not cylinder.ok or len(pts) < 8:
         return 0.0, np.inf
-    beta, gain = _bend_step(pts, sig, cylinder, huber)
-    nb = float(np.linalg.norm(beta))
-    return max(gain, 0.0), (1.0 / (2.0 * nb) if nb > 0 else np.inf)
+    _, bend, gain = _bend_step(pts, sig, cylinder, huber)
+    return max(gain, 0.0), bend
 
 
 def _bent_cylinder_start(pts, sig, cyl: CylinderFit, huber: float | None):
     """Start ``(centre, axis, R, r)`` from the bent cylinder (:func:`_bend_step`), for a short visible arc; None
     when the bend is too slight for a ring torus."""
-    beta, _ = _bend_step(pts, sig, cyl, huber)
-    nb = float(np.linalg.norm(beta))
-    R = 1.0 / (2.0 * nb) if nb > 0 else np.inf
+    toward, R, _ = _bend_step(pts, sig, cyl, huber)
     if not (np.isfinite(R) and R > cyl.radius):
         return None
     h = (pts - cyl.point) @ cyl.axis
     mid = cyl.point + 0.5 * (h.max() + h.min()) * cyl.axis
-    axis = np.cross(cyl.axis, beta / nb)
-    return mid + R * beta / nb, axis / np.linalg.norm(axis), float(R), float(cyl.radius)
+    axis = np.cross(cyl.axis, toward)
+    return mid + R * toward, axis / np.linalg.norm(axis), float(R), float(cyl.radius)
 
 
 def _torus_starts(pts, sig, nrm, r0: float, huber: float | None) -> list:
