@@ -300,6 +300,20 @@ def test_elbow_is_oth_with_its_radii_and_vetoes_the_trimmed_rescue():
     assert r.label == "CYL" and r.details["trimmed_inlier_fraction"] >= 0.8
 
 
+def test_patches_below_min_torus_points_get_no_torus_and_no_rescue():
+    """Below ``min_torus_points`` the torus (7 parameters) and the trimmed rescue are not tried: the same
+    elbow, cut to 150 points, gets the torus only when the gate is lowered."""
+    p = sample_patch("torus", np.random.default_rng([944127]), "mockup_laser", n_max=2000, noise_scale=0.5)
+    idx = np.linspace(0, len(p.points) - 1, 150).round().astype(int)
+    pts, sig = p.points[idx], p.sigma[idx]
+    r = classify_patch(pts, sig)
+    _check_result(r)
+    assert "TOR" not in r.details["fits"] and "trimmed_inlier_fraction" not in r.details
+    r = classify_patch(pts, sig, params=SelectParams(min_torus_points=100))
+    _check_result(r)
+    assert "TOR" in r.details["fits"]
+
+
 def _cylinder_with_correlated_noise(seed: int, window: int, radius: float = 0.04, sigma: float = 1.5e-3,
                                     distance: float = 0.8, half: int = 80) -> np.ndarray:
     """Points of a vertical cylinder seen by a 525 px pinhole camera from ``distance``, range noise along
