@@ -583,7 +583,8 @@ def _gross_outliers(pts: np.ndarray, sig: np.ndarray, k: float) -> np.ndarray:
     return dev > k * np.maximum(spread, sig)
 
 
-def _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params: SelectParams, n: int, rho: float = 1.0):
+def _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params: SelectParams, n: int, rho: float = 1.0,
+                    core: np.ndarray | None = None):
     """A patch none of whose models fits all points: does one primitive fit most of them?
 
     Segmented patches may include a neighbouring surface's pixels at their borders, or a piece of another
@@ -592,15 +593,29 @@ def _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params: SelectParams, 
     ``min_inliers`` of the points remain and the refit passes the goodness-of-fit test on them, return
     ``(label, fit, inlier fraction)`` of the one of lowest criterion on its trimmed chi²; else None.
     Curved shapes that no primitive explains (elbows) leave large, structured residuals on most points and
-    stay OTH.
+    stay OTH. ``core`` (subsample mask): the points the gross outlier test keeps when it flagged too many to
+    drop; each primitive is also fitted afresh on them and refined from there, since a fit of all the points
+    of a pipe with the wall behind it merged in may sit in the mixture's basin, which the concentration
+    steps do not leave.
     """
     # not the cone: the most flexible primitive, it fits most of an elbow's points within noise
     cands = [c for c in ("PLAN", "CYL", "SPH") if c in crit and fits[c].ok and not fits[c].reason]
     if not cands:
         return None
     found = None
-    for c in sorted(cands, key=crit.get):
-        got = _trim_refit(fits[c], ps, ss, ns, params, n)
+    starts = [(c, fits[c]) for c in sorted(cands, key=crit.get)]
+    if core is not None and core.sum() >= max(10, params.min_inliers * n * 0.5):
+        kw = {"max_points": None, "huber": params.huber, "max_iter": params.max_iter}
+        nc = None if ns is None else ns[core]
+        fresh = {"PLAN": lambda: prim.fit_plane(ps[core], ss[core], nc),
+                 "CYL": lambda: prim.fit_cylinder(ps[core], ss[core], nc, **kw),
+                 "SPH": lambda: prim.fit_sphere(ps[core], ss[core], **kw)}
+        for c in list(cands):
+            f = fresh[c]()
+            if f.ok:
+                starts.append((c, f))
+    for c, start in starts:
+        got = _trim_refit(start, ps, ss, ns, params, n)
         if got is None:
             continue
         # among those that pass, the lowest criterion on the trimmed chi² of all points (a more flexible
@@ -723,6 +738,9 @@ def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, ray
             keep = None
     n_all = len(pts)
     idx = _subsample(n_all, params.max_points)
+    # too many gross outliers to drop them all (a curved strip's rims among them): the points they leave
+    # still give the trimmed rescue a start off the mixture's basin
+    core = None if keep is not None or params.outlier_k <= 0 or not out.any() else ~out[idx]
     ps, ss = pts[idx], sig[idx]
     ns = None if nrm is None else nrm[idx]
     n = len(ps)
@@ -798,7 +816,7 @@ def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, ray
         else:
             del fits["TOR"]
     extra = {"cone_skipped": skip_cone, "n_gross_outliers": n_dropped, "correlation": rho,
-             "correlation_area": float(correlation_area)}
+             "correlation_area": float(correlation_area), "core": core}
     return _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params, planar_hint, n, n_all, extra,
                    axes=axes, ns=ns, n_in=n_in, keep=keep)
 
@@ -875,7 +893,7 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
     label = max(CLASSES, key=lambda c: probs[c])
     details = {"criterion": crit, "gof": gof, "posterior": post, "fits": fits, "n_used": n, **extra}
     if label == "OTH" and params.min_inliers < 1.0 and n_all >= params.min_torus_points and not _elbow(crit, gof):
-        rescue = _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params, n, rho)
+        rescue = _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params, n, rho, extra.get("core"))
         if rescue is not None:
             label, fit, frac = rescue
             fits[label] = fit
