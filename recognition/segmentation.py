@@ -1204,30 +1204,62 @@ def _plane_pair_sides(p: np.ndarray, x: np.ndarray) -> np.ndarray:
     return (d2 < d1).astype(np.int8)
 
 
-def _k_planes(x: np.ndarray, u: np.ndarray, s: np.ndarray, normals: np.ndarray, k: int,
-              iterations: int = 10) -> np.ndarray | None:
+def _k_planes(x: np.ndarray, u: np.ndarray, s: np.ndarray, k: int, iterations: int = 10,
+              inlier_z: float = 3.0, trials: int = 100) -> np.ndarray | None:
     """Part (0 .. k-1) of each point ``x`` (N, 3) by k planes fitted alternately (k-planes): each point goes
     to the plane nearest along its ray ``u`` (in its sigmas ``s``), each plane is refitted to its points.
-    Started from the points' ``normals`` (N, 3, NaN where undefined) grouped about k mutually distant ones;
-    None when a part empties."""
-    ok = np.flatnonzero(np.isfinite(normals).all(axis=1))
-    if ok.size < 3 * k:
+
+    Started by sequential RANSAC: the plane through three of the points (``trials`` triples, a fixed seed:
+    deterministic) with most points within ``inlier_z`` sigmas, refitted on them, then the next one among
+    the points left. A start from the pixels' normals (k mutually distant ones) put a far box's narrow top
+    and its front in one part: its normals are too noisy there. None when a part empties."""
+    n_pts = len(x)
+    if n_pts < 3 * k:
         return None
-    nn = normals[ok]
-    centres = [nn[np.argmin(nn @ nn.mean(axis=0))]]  # the normal least like the mean, then farthest ones
-    for _ in range(1, k):
-        centres.append(nn[np.argmin(np.max(nn @ np.array(centres).T, axis=1))])
-    part = np.full(len(x), -1)
-    part[ok] = np.argmax(nn @ np.array(centres).T, axis=1)
+    gen = np.random.default_rng(0)
+
+    def dist(c, n):
+        return np.abs((x - c) @ n) / (np.maximum(np.abs(u @ n), _MIN_GRAZING) * s)
+
+    def plane_of(m):
+        c = x[m].mean(axis=0)
+        return c, np.linalg.eigh((x[m] - c).T @ (x[m] - c))[1][:, 0]
+
+    left = np.ones(n_pts, bool)
+    planes = []
+    for _ in range(k):
+        pool = np.flatnonzero(left)
+        if pool.size < 3:
+            return None
+        tri = x[pool[gen.integers(0, pool.size, size=(trials, 3))]]  # (trials, 3 points, 3)
+        nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        norm = np.linalg.norm(nrm, axis=1)
+        good = norm > 1e-12
+        if not good.any():
+            return None
+        nrm, c0 = nrm[good] / norm[good, None], tri[good, 0]
+        # inlier counts of all candidates at once: (candidates, points) distances along the rays
+        z = np.abs(np.einsum("cj,cj->c", nrm, c0)[:, None] - nrm @ x[pool].T)
+        z /= np.maximum(np.abs(nrm @ u[pool].T), _MIN_GRAZING) * s[pool]
+        b = int(np.argmax((z <= inlier_z).sum(axis=1)))
+        inl = np.zeros(n_pts, bool)
+        inl[pool[z[b] <= inlier_z]] = True
+        for _ in range(3):
+            if inl.sum() < 3:
+                return None
+            inl = (dist(*plane_of(inl)) <= inlier_z) & left
+        if inl.sum() < 3:
+            return None
+        planes.append(plane_of(inl))
+        left &= ~inl
+    part = np.argmin(np.stack([dist(c, n) for c, n in planes]), axis=0)
     for _ in range(iterations):
-        z = np.full((k, len(x)), np.inf)
+        z = np.full((k, n_pts), np.inf)
         for j in range(k):
             m = part == j
             if m.sum() < 3:
                 return None
-            c = x[m].mean(axis=0)
-            n = np.linalg.eigh((x[m] - c).T @ (x[m] - c))[1][:, 0]
-            z[j] = np.abs((x - c) @ n) / (np.maximum(np.abs(u @ n), _MIN_GRAZING) * s)
+            z[j] = dist(*plane_of(m))
         new = np.argmin(z, axis=0)
         if np.array_equal(new, part):
             break
@@ -1251,13 +1283,13 @@ def _trimmed_rms(z: np.ndarray, keep: float = 0.9) -> float:
 _FACE_COS = np.cos(np.radians(30.0))  # faces cut apart by _faces meet at 30 deg or more
 
 
-def _faces(idx: np.ndarray, st: _State, normals: np.ndarray, params: SegmentationParams) -> list[np.ndarray]:
+def _faces(idx: np.ndarray, st: _State, params: SegmentationParams) -> list[np.ndarray]:
     """The two or three faces (:func:`_k_planes`) of the patch of pixels ``idx`` that each fit a plane within
     ``1.5 merge_k`` (but for a tenth of their pixels, mixed at the creases: a far box's faces are a few pixels
     wide), are broad against the noise (:func:`_broad`) and meet at 30 deg or more (not one face with a few
     stray pixels); [] when there are none."""
     for k in (2, 3):
-        part = _k_planes(st.X[idx], st.U[idx], st.S[idx], normals[idx], k)
+        part = _k_planes(st.X[idx], st.U[idx], st.S[idx], k)
         if part is None:
             continue
         faces = [idx[part == j] for j in range(k)]
@@ -1271,11 +1303,11 @@ def _faces(idx: np.ndarray, st: _State, normals: np.ndarray, params: Segmentatio
 
 
 def _split_plane_pairs(labels: np.ndarray, st: _State, params: SegmentationParams,
-                       normals: np.ndarray | None = None) -> np.ndarray:
+                       cut_faces: bool = False) -> np.ndarray:
     """Cut each patch that no plane fits (RMS beyond ``merge_k``) but a plane pair does (two faces of a far,
     small box whose crease the curvature could not see, reassembled from noisy tiles) along its crease,
-    when each side then fits its own plane. With ``normals`` (H*W, 3), a patch that no quadric fits either
-    is cut into the two or three faces that fit planes (:func:`_faces`)."""
+    when each side then fits its own plane. With ``cut_faces``, a patch that no quadric fits either is cut
+    into the two or three faces that fit planes (:func:`_faces`)."""
     groups = {k: v for k, v in _groups(labels).items() if v.size >= 2 * params.min_patch_pixels}
     if not groups:
         return labels
@@ -1298,9 +1330,9 @@ def _split_plane_pairs(labels: np.ndarray, st: _State, params: SegmentationParam
             _, zh = _quick_fits([_subsample(h, params.max_fit_points) for h in pieces], np.ones(2, bool), st)
             if not all(_rms(z) <= params.merge_k for z in zh):
                 continue
-        elif not _rms(z) <= params.merge_k and normals is not None:
+        elif not _rms(z) <= params.merge_k and cut_faces:
             # no quadric fits either: the pixels mixed at the crease spoil the plane pair
-            pieces = _faces(idx, st, normals, params)
+            pieces = _faces(idx, st, params)
         else:
             continue
         if out is labels and pieces:
@@ -1904,7 +1936,7 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
         links = _neighbour_links(shape, valid, jump_h, jump_v)  # (the full-resolution grid's, for both steps)
         labels = _refine_full(up(labels_d), valid, st_full, links, jump_h, jump_v, params, d)
         labels = _merge(labels, st_full, jump_h, jump_v)  # (before the cuts below, which it would undo)
-        split = _split_plane_pairs(labels, st_full, params, cur.normals.reshape(-1, 3))
+        split = _split_plane_pairs(labels, st_full, params, cut_faces=True)
         if split is not labels:  # a split-off side too small to stand alone goes to the face it belongs to
             labels = _absorb_fragments(split, st_full, jump_h, jump_v, params.min_region_pixels, params.absorb_k)
         if params.axis_split_pixels is not None:
