@@ -1287,18 +1287,33 @@ def _faces(idx: np.ndarray, st: _State, params: SegmentationParams) -> list[np.n
     """The two or three faces (:func:`_k_planes`) of the patch of pixels ``idx`` that each fit a plane within
     ``1.5 merge_k`` (but for a tenth of their pixels, mixed at the creases: a far box's faces are a few pixels
     wide), are broad against the noise (:func:`_broad`) and meet at 30 deg or more (not one face with a few
-    stray pixels); [] when there are none."""
+    stray pixels); [] when there are none. Of three parts, one parallel to a face, at 30 deg or more from
+    the other and of at most half that face's pixels is the face's layer (returns mixed at its edge, or a
+    piece of the surface behind it) and goes with it, unchecked. (Larger parallel parts were facets of a
+    near pipe on the ``calibration`` suite.)"""
     for k in (2, 3):
         part = _k_planes(st.X[idx], st.U[idx], st.S[idx], k)
         if part is None:
             continue
         faces = [idx[part == j] for j in range(k)]
-        if min(f.size for f in faces) < params.min_patch_pixels or not all(_broad(st.X[f], st.S[f]) for f in faces):
-            continue
         Pf, zf = _quick_fits([_subsample(f, params.max_fit_points) for f in faces], np.ones(k, bool), st)
-        cos = np.abs(Pf[:, 6:9] @ Pf[:, 6:9].T)[np.triu_indices(k, 1)]
-        if np.all(cos <= _FACE_COS) and all(_trimmed_rms(z) <= 1.5 * params.merge_k for z in zf):
-            return faces
+        cos = np.abs(Pf[:, 6:9] @ Pf[:, 6:9].T)
+        pairs = [(i, j) for i in range(k) for j in range(i + 1, k)]
+        parallel = [(i, j) for i, j in pairs if cos[i, j] > _FACE_COS]
+        layer = host = None
+        if k == 3 and len(parallel) == 1:
+            host, layer = sorted(parallel[0], key=lambda j: -faces[j].size)
+            if 2 * faces[layer].size > faces[host].size:
+                host = layer = None
+        keep = [j for j in range(k) if j != layer]
+        if min(faces[j].size for j in keep) < params.min_patch_pixels or \
+                not all(_broad(st.X[faces[j]], st.S[faces[j]]) for j in keep):
+            continue
+        if all(cos[i, j] <= _FACE_COS for i, j in pairs if i in keep and j in keep) and \
+                all(_trimmed_rms(zf[j]) <= 1.5 * params.merge_k for j in keep):
+            if layer is not None:
+                faces[host] = np.sort(np.concatenate([faces[host], faces[layer]]))
+            return [faces[j] for j in keep]
     return []
 
 

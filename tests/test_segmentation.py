@@ -645,6 +645,39 @@ def test_a_far_box_corner_that_no_quadric_fits_is_cut_into_its_faces():
     assert set(split(pipe, up, sigma=0.01)) == {0}
 
 
+def test_a_far_box_corner_keeps_the_layer_behind_a_face_with_that_face():
+    """Two faces of a far box and, behind one of them, a parallel layer of 15 % of its pixels (the wall seen
+    past the box's edge, merged into the patch): cut into the two faces, the layer with the face it lies
+    behind. A layer as large as the face is not a layer: the patch is not cut."""
+    from recognition.segmentation import _faces, _State
+
+    rng = np.random.default_rng(11)
+    n, m = 400, 60
+    a, b = rng.uniform(0.0, 0.6, n), rng.uniform(-0.3, 0.3, n)
+    top = np.column_stack([a * 0.7, b, np.full(n, 12.0) - a * 0.7])
+    side = np.column_stack([-a * 0.7, b, np.full(n, 12.0) - a * 0.7])
+    behind = np.array([-1.0, 0.0, 1.0]) / np.sqrt(2.0)  # the side face's normal, away from the sensor
+
+    def faces_of(n_layer):
+        layer = side[:n_layer] + 0.3 * behind
+        x = np.concatenate([top, side, layer])
+        u = x / np.linalg.norm(x, axis=1, keepdims=True)
+        x = x + u * rng.normal(0.0, 0.003, len(x))[:, None]
+        st = _State(X=x, U=u, S=np.full(len(x), 0.003), hk=np.ones(len(x), np.int64), params=SegmentationParams())
+        return _faces(np.arange(len(x)), st, st.params)
+
+    got = faces_of(m)
+    assert len(got) == 2
+    which = np.zeros(2 * n + m, int)
+    for j, f in enumerate(got):
+        which[f] = j
+    face_top, face_side = np.bincount(which[:n]).argmax(), np.bincount(which[n:2 * n]).argmax()
+    assert face_top != face_side
+    assert np.mean(which[:n] == face_top) >= 0.95 and np.mean(which[n:2 * n] == face_side) >= 0.95
+    assert np.all(which[2 * n:] == face_side)
+    assert faces_of(n) == []
+
+
 @pytest.mark.parametrize("seed", range(5))
 def test_k_planes_parts_a_far_box_corner_with_a_narrow_face(seed):
     """Three faces of a box corner pointing at the sensor from 18 m (8 mm noise), one of them a narrow strip
