@@ -816,9 +816,9 @@ def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, ray
         else:
             del fits["TOR"]
     extra = {"cone_skipped": skip_cone, "n_gross_outliers": n_dropped, "correlation": rho,
-             "correlation_area": float(correlation_area), "core": core}
+             "correlation_area": float(correlation_area)}
     return _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params, planar_hint, n, n_all, extra,
-                   axes=axes, ns=ns, n_in=n_in, keep=keep)
+                   axes=axes, ns=ns, n_in=n_in, keep=keep, core=core)
 
 
 def _curvature_gain(plane: prim.PlaneFit, ps: np.ndarray, ss: np.ndarray) -> float:
@@ -865,7 +865,8 @@ def _elbow(crit: dict[str, float], gof: dict[str, float]) -> bool:
 
 
 def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParams, planar_hint: bool, n: int,
-            n_all: int, extra: dict, axes=None, ns=None, n_in: int = 0, keep=None) -> PatchClassification:
+            n_all: int, extra: dict, axes=None, ns=None, n_in: int = 0, keep=None,
+            core: np.ndarray | None = None) -> PatchClassification:
     kw = {"max_points": None, "huber": params.huber, "max_iter": params.max_iter}
     skip_cone = extra.get("cone_skipped", False)
     rho = extra.get("correlation", 1.0)
@@ -893,7 +894,7 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
     label = max(CLASSES, key=lambda c: probs[c])
     details = {"criterion": crit, "gof": gof, "posterior": post, "fits": fits, "n_used": n, **extra}
     if label == "OTH" and params.min_inliers < 1.0 and n_all >= params.min_torus_points and not _elbow(crit, gof):
-        rescue = _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params, n, rho, extra.get("core"))
+        rescue = _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params, n, rho, core)
         if rescue is not None:
             label, fit, frac = rescue
             fits[label] = fit

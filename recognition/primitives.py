@@ -535,7 +535,7 @@ def fit_plane(
         w = 1.0 / sig**2
         c = (w @ pts) / w.sum()
         d = pts - c
-        S = d.T @ (d * w[:, None])
+        S = (d * w[:, None]).T @ d
         vals, vecs = np.linalg.eigh(S)
         if vals[1] <= 1e-12 * max(vals[2], 1e-300):
             return _fail_plane(n, "points are collinear: plane not unique")
@@ -544,24 +544,17 @@ def fit_plane(
             u = pts - org
             u /= np.linalg.norm(u, axis=1, keepdims=True)
             sig = sig_in * np.maximum(np.abs(u @ nv), cos_min)
-    nrm_sum = None if nrm is None else np.ones(n) @ nrm  # (a BLAS product: nrm.sum(axis=0) is 20x slower)
-    if nrm_sum is not None and np.all(np.isfinite(nrm_sum)) and nv @ nrm_sum < 0:
+    if nrm is not None and np.all(np.isfinite(nrm)) and nv @ nrm.sum(axis=0) < 0:
         nv = -nv
     elif nrm is None and nv @ c > 0:
         nv = -nv  # face the origin (the sensor, for points in the sensor frame)
     off = float(nv @ c)
+    dist = pts @ nv - off
+    r = dist / sig
     e1, e2 = _perp_basis(nv)
-    # local parameters: tilt about (e1, e2) through the weighted centroid, offset; the Jacobian's rows are
-    # (d.e1, d.e2, -1) / sigma and the sandwich covariance of _local_cov is formed from them directly (the
-    # polish of a wall refits 10^5 points: this is its cost)
-    A = d @ np.stack([e1, e2, nv], axis=1)
-    dist = A[:, 2].copy()
-    isig = 1.0 / sig
-    r = dist * isig
-    A[:, 2] = -1.0
-    Aw = A * (isig * isig)[:, None]
-    Hinv = np.linalg.pinv(A.T @ Aw)
-    cov3 = (n / max(n - 3, 1)) * Hinv @ (A.T @ (Aw * (r * r)[:, None])) @ Hinv
+    # local parameters: tilt about (e1, e2) through the weighted centroid, offset
+    J = np.stack([(d @ e1) / sig, (d @ e2) / sig, -1.0 / sig], axis=1)
+    cov3 = _local_cov(r, J, np.ones(n), 3)
     # map (tilt1, tilt2, offset at centroid) -> (normal, offset): offset = n . c, dn = t1 e1 + t2 e2
     M = np.zeros((4, 3))
     M[:3, 0], M[:3, 1] = e1, e2
