@@ -363,6 +363,9 @@ def _invariants(fit: Primitive | None, pts: np.ndarray, sigma_scale: float = 1.0
     if isinstance(fit, prim.ConeFit) and fit.ok:
         return {"half_angle_rad": (fit.half_angle, k * fit.half_angle_sigma),
                 "length_m": (fit.length, k * _length_sigma(pts, fit.axis, fit.length))}
+    if isinstance(fit, prim.TorusFit) and fit.ok:  # a pipe elbow: its bend and pipe radii
+        return {"major_radius_m": (fit.major_radius, k * fit.major_radius_sigma),
+                "minor_radius_m": (fit.minor_radius, k * fit.minor_radius_sigma)}
     return {}
 
 
@@ -893,6 +896,10 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
     plaus = {c: float(probs[c]) for c in ("CYL", "SPH", "CONE")}
     label = max(CLASSES, key=lambda c: probs[c])
     details = {"criterion": crit, "gof": gof, "posterior": post, "fits": fits, "n_used": n, **extra}
+    # the fits' covariances treat every point as an independent error; errors shared by groups of
+    # ``correlation_area`` pixels make their parameters vary up to that many times more (variance)
+    sigma_scale = params.invariant_sigma_scale * math.sqrt(
+        max(1.0, min(extra.get("correlation_area", 1.0), len(pts))))
     if label == "OTH" and params.min_inliers < 1.0 and n_all >= params.min_torus_points and not _elbow(crit, gof):
         rescue = _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params, n, rho, core)
         if rescue is not None:
@@ -911,12 +918,9 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
     if label == "OTH":
         if _elbow(crit, gof):
             t = fits["TOR"]
-            k = params.invariant_sigma_scale * math.sqrt(max(1.0, min(extra.get("correlation_area", 1.0), len(pts))))
             why = (f"a torus (pipe elbow) explains the points: bend radius {t.major_radius * 1e3:.4g} mm, pipe "
                    f"radius {t.minor_radius * 1e3:.4g} mm")
-            return _result("OTH", probs, plaus, t, {"major_radius_m": (t.major_radius, k * t.major_radius_sigma),
-                                                    "minor_radius_m": (t.minor_radius, k * t.minor_radius_sigma)},
-                           why, details)
+            return _result("OTH", probs, plaus, t, _invariants(t, pts, sigma_scale), why, details)
         best = min((c for c in crit if c not in ("OTH", "TOR")), key=crit.get, default=None)
         if best is not None and gof.get(best, 0.0) < 0.5:
             f = fits[best]
@@ -942,11 +946,7 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
         refit = prim.refit_along_rays(fit, pts, sig, rays, huber=params.huber, max_points=params.refit_points)
         details["geometric_fit"] = fit
         fit = refit
-    # the final fit's covariance treats every point as an independent error; errors shared by groups of
-    # ``correlation_area`` pixels make its parameters vary up to that many times more (variance)
-    shared = math.sqrt(max(1.0, min(extra.get("correlation_area", 1.0), len(pts))))
-    return _result(label, probs, plaus, fit, _invariants(fit, pts, params.invariant_sigma_scale * shared), "",
-                   details)
+    return _result(label, probs, plaus, fit, _invariants(fit, pts, sigma_scale), "", details)
 
 
 # ---------------------------------------------------------------------------------------------------------
