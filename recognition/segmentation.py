@@ -2112,18 +2112,29 @@ def _axial_cut(x: np.ndarray, s: np.ndarray, point: np.ndarray, axis: np.ndarray
     return None if at is None else (b >= full[at]).astype(np.int64)
 
 
+def _line_sums(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Cumulative weighted moments ``(w, w x, w y, w x², w x y, w y²)`` of the points, shape (6, N + 1) with a
+    leading zero column: the sums over ``[i, j)`` are ``c[:, j] - c[:, i]``."""
+    x = x.astype(np.float64)
+    return np.concatenate([np.zeros((6, 1)), np.cumsum(np.stack([w, w * x, w * y, w * x * x, w * x * y, w * y * y]),
+                                                        axis=1)], axis=1)
+
+
+def _line_of_sums(s0, sx, sy, sxx, sxy):
+    """``(slope, intercept)`` of the weighted least-squares line from its moments (arrays broadcast)."""
+    slope = (s0 * sxy - sx * sy) / (s0 * sxx - sx * sx)
+    return slope, (sy - slope * sx) / s0
+
+
 def _line_sse(x: np.ndarray, y: np.ndarray, w: np.ndarray):
     """A function ``sse(i, j)`` (broadcasting over integer arrays): the weighted squared misfit of
     ``y[i:j]`` to its weighted least-squares line in ``x``, from cumulative sums."""
-    x = x.astype(np.float64)
-    c = np.concatenate([np.zeros((6, 1)), np.cumsum(np.stack([w, w * x, w * y, w * x * x, w * x * y, w * y * y]),
-                                                     axis=1)], axis=1)
+    c = _line_sums(x, y, w)
 
     def sse(i, j):
         i, j = np.broadcast_arrays(np.asarray(i), np.asarray(j))
         s0, sx, sy, sxx, sxy, syy = c[:, j] - c[:, i]
-        slope = (s0 * sxy - sx * sy) / (s0 * sxx - sx * sx)
-        icpt = (sy - slope * sx) / s0
+        slope, icpt = _line_of_sums(s0, sx, sy, sxx, sxy)
         return np.maximum(syy - icpt * sy - slope * sxy, 0.0)
 
     return sse
@@ -2133,10 +2144,7 @@ def _line_misfit(x: np.ndarray, y: np.ndarray, w: np.ndarray, tol: np.ndarray, e
     """For each ``e`` in ``ends``: the largest deviation, in ``tol`` units, of ``y[:e]`` from its line fitted by
     least squares weighted by ``w`` (counts), all prefixes at once from cumulative sums."""
     x = x.astype(np.float64)
-    c = np.cumsum(np.stack([w, w * x, w * y, w * x * x, w * x * y]), axis=1)
-    s0, sx, sy, sxx, sxy = c[:, ends - 1]
-    slope = (s0 * sxy - sx * sy) / (s0 * sxx - sx * sx)
-    icpt = (sy - slope * sx) / s0
+    slope, icpt = _line_of_sums(*_line_sums(x, y, w)[:5, ends])
     dev = np.abs(icpt[:, None] + slope[:, None] * x[None, :] - y[None, :]) / tol[None, :]
     return np.where(np.arange(len(x))[None, :] < ends[:, None], dev, -np.inf).max(axis=1)
 
