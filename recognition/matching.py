@@ -14,7 +14,8 @@ misclassified patch). It is an interpretation tree cut at the depth where the po
   by the prior must lie near the candidate;
 * binary constraints against every earlier pair, tested for all candidates of a node at once on arrays:
   angles between normals/axes, distances between parallel planes, from axes and centres to planes,
-  between axes, between centres;
+  between axes, between centres, and between the two items' positions, which must both lie on their
+  elements (a face, an axis segment: ``ModelElements.bound_centre`` and ``bound_radius``);
 * items ordered by fewest candidates (tempered by size: small patches are the likeliest spurious); seeds
   of 2-3 items are enumerated by their last item - (0,1), (0,2), (1,2), (0,3), ... - so a spurious item
   costs a few seeds, never a whole subtree, and every item is tried early;
@@ -166,6 +167,9 @@ class ModelElements:
     half_size : ndarray of shape (E, 2), rectangle half sizes (disc: radius, radius).
     area : ndarray of shape (E,), m².
     diag : ndarray of shape (E,), largest in-plane extent of a plane element (metres).
+    bound_centre, bound_radius : ndarray of shape (E, 3) and (E,), a ball holding every place a scene item's
+        ``position`` can take on the element: a plane's face, a cylinder's or cone's axis segment, a
+        sphere's centre (metres). Bounds the distance between two items' positions (:func:`binary_ok`).
     """
 
     kind: np.ndarray
@@ -181,6 +185,8 @@ class ModelElements:
     half_size: np.ndarray
     area: np.ndarray
     diag: np.ndarray
+    bound_centre: np.ndarray
+    bound_radius: np.ndarray
 
     def __len__(self) -> int:
         return len(self.kind)
@@ -198,23 +204,24 @@ def model_elements(model: SceneModel) -> ModelElements:
             hu, hv = f.half_size
             rows.append(dict(kind="PLAN", fid=f.id, part="face", d=f.normal, p=f.centre, r=np.nan, ha=np.nan,
                              L=np.nan, s=0.0, u=f.u_axis, hs=(hu, hv), area=4 * hu * hv,
-                             diag=2 * math.hypot(hu, hv)))
+                             diag=2 * math.hypot(hu, hv), bc=f.centre, br=math.hypot(hu, hv)))
         elif isinstance(f, Cylinder):
             rows.append(dict(kind="CYL", fid=f.id, part="side", d=f.axis, p=f.centre, r=f.radius, ha=np.nan,
-                             L=f.length, s=0.0, u=nan3, hs=(np.nan, np.nan), area=f.area(), diag=np.nan))
+                             L=f.length, s=0.0, u=nan3, hs=(np.nan, np.nan), area=f.area(), diag=np.nan,
+                             bc=f.centre, br=0.5 * f.length))
             for sign, part in ((-1.0, "cap_start"), (1.0, "cap_end")):
-                rows.append(dict(kind="PLAN", fid=f.id, part=part, d=sign * f.axis,
-                                 p=f.centre + sign * 0.5 * f.length * f.axis, r=f.radius, ha=np.nan, L=np.nan,
-                                 s=0.0, u=nan3, hs=(f.radius, f.radius), area=math.pi * f.radius**2,
-                                 diag=2 * f.radius))
+                cap = f.centre + sign * 0.5 * f.length * f.axis
+                rows.append(dict(kind="PLAN", fid=f.id, part=part, d=sign * f.axis, p=cap, r=f.radius,
+                                 ha=np.nan, L=np.nan, s=0.0, u=nan3, hs=(f.radius, f.radius),
+                                 area=math.pi * f.radius**2, diag=2 * f.radius, bc=cap, br=f.radius))
         elif isinstance(f, Cone):
             rows.append(dict(kind="CONE", fid=f.id, part="side", d=f.axis, p=f.apex, r=np.nan, ha=f.half_angle,
                              L=f.end - f.start, s=f.start, u=nan3, hs=(np.nan, np.nan), area=f.area(),
-                             diag=np.nan))
+                             diag=np.nan, bc=f.apex + 0.5 * (f.start + f.end) * f.axis, br=0.5 * (f.end - f.start)))
         elif isinstance(f, Sphere):
             rows.append(dict(kind="SPH", fid=f.id, part="surface", d=np.zeros(3), p=f.centre, r=f.radius,
                              ha=np.nan, L=np.nan, s=0.0, u=nan3, hs=(np.nan, np.nan), area=f.area(),
-                             diag=np.nan))
+                             diag=np.nan, bc=f.centre, br=0.0))
 
     def col(key, dtype=np.float64):
         return np.array([r[key] for r in rows], dtype=dtype)
@@ -222,11 +229,11 @@ def model_elements(model: SceneModel) -> ModelElements:
     if not rows:
         z = np.zeros(0)
         return ModelElements(z.astype(str), z.astype(str), z.astype(str), np.zeros((0, 3)), np.zeros((0, 3)), z,
-                             z, z, z, np.zeros((0, 3)), np.zeros((0, 2)), z, z)
+                             z, z, z, np.zeros((0, 3)), np.zeros((0, 2)), z, z, np.zeros((0, 3)), z)
     return ModelElements(col("kind", object).astype(str), col("fid", object).astype(str),
                          col("part", object).astype(str), col("d").reshape(-1, 3), col("p").reshape(-1, 3),
                          col("r"), col("ha"), col("L"), col("s"), col("u").reshape(-1, 3),
-                         col("hs").reshape(-1, 2), col("area"), col("diag"))
+                         col("hs").reshape(-1, 2), col("area"), col("diag"), col("bc").reshape(-1, 3), col("br"))
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -406,11 +413,13 @@ def _point_line_distance(p, a, q):
     return np.linalg.norm(perp, axis=-1)
 
 
-def binary_ok(i_item: SceneItem, e_i: int, j_item: SceneItem, cand: np.ndarray, el: ModelElements) -> np.ndarray:
+def binary_ok(i_item: SceneItem, e_i: int, j_item: SceneItem, cand: np.ndarray, el: ModelElements,
+              length_slack: float = 1.15) -> np.ndarray:
     """Boolean mask over ``cand`` (element indices for ``j_item``) consistent with the pair
-    ``(i_item, e_i)``: angle between directions, and a distance measure (all vectorised over ``cand``)."""
+    ``(i_item, e_i)``: angle between directions, a distance measure, and the distance between the items'
+    positions within the bounds of their elements (``length_slack``: segmentation bleed, as in the unary
+    tests), all vectorised over ``cand``."""
     gi, gj = _GEOM[i_item.kind], _GEOM[j_item.kind]
-    ok = np.ones(len(cand), dtype=bool)
     ang_tol = math.hypot(i_item.angle_tol, j_item.angle_tol)
     dm = el.direction[cand]
     di_m = el.direction[e_i]
@@ -419,6 +428,10 @@ def binary_ok(i_item: SceneItem, e_i: int, j_item: SceneItem, cand: np.ndarray, 
     ps_i, ps_j = i_item.position, j_item.position
     lever = float(np.linalg.norm(ps_j - ps_i))
     dist_tol = math.hypot(i_item.dist_tol, j_item.dist_tol) + lever * ang_tol
+    # each position lies on its element (a face, an axis segment, a centre): within the elements' balls
+    bleed = 0.5 * (length_slack - 1.0) * sum(it.length for it in (i_item, j_item) if np.isfinite(it.length))
+    gap = np.linalg.norm(el.bound_centre[cand] - el.bound_centre[e_i], axis=1)
+    ok = np.abs(gap - lever) <= el.bound_radius[cand] + el.bound_radius[e_i] + dist_tol + bleed
     if gi < 2 and gj < 2:
         cs = float(ds_i @ ds_j)
         cm = dm @ di_m
@@ -785,7 +798,7 @@ class _Search:
         for j, e in assigned:
             if len(cand) == 0:
                 break
-            cand = cand[binary_ok(self.items[j], e, item, cand, self.el)]
+            cand = cand[binary_ok(self.items[j], e, item, cand, self.el, self.p.length_slack)]
         self.n_nodes += 1
         for e in cand:
             if self.out_of_budget():

@@ -7,7 +7,7 @@ import pytest
 
 from recognition.classify import PatchClassification
 from recognition.describe import SceneDescription, ScenePatch
-from recognition.matching import MatchParams, match, model_elements
+from recognition.matching import MatchParams, binary_ok, match, model_elements, scene_items
 from recognition.primitives import fit_cylinder, fit_plane, fit_sphere
 from recognition.segmentation import SurfaceType
 from scenes.features import Cylinder, Plane, Sphere
@@ -205,3 +205,28 @@ def test_a_patch_without_candidates_is_left_to_the_wildcard():
     assert odd_item.patch_index in res.matchable
     assert odd_item.patch_index not in {it.patch_index for it in res.items}
     assert np.linalg.norm(res.hypotheses[0].pose.T_world_sensor[:3, 3] - T_ws[:3, 3]) < 0.01
+
+
+def test_faces_pair_only_with_faces_near_enough_on_the_model():
+    """Two items' positions lie on their elements: a box's top pairs with its own front, not with the front
+    of an identical box 4 m away (the angle between the faces cannot tell them apart, and the faces are not
+    parallel, so no offset test applies)."""
+    boxes = []
+    for k, x in enumerate((0.0, 4.0)):
+        top = Plane(f"box{k}.top", centre=[x, 0, 1], normal=[0, 0, 1], u_axis=[1, 0, 0], half_size=(0.4, 0.3))
+        front = Plane(f"box{k}.front", centre=[x, -0.3, 0.5], normal=[0, -1, 0], u_axis=[1, 0, 0],
+                      half_size=(0.4, 0.5))
+        boxes.append(Object(f"box{k}", "cabinet", (top, front)))
+    model = SceneModel("boxes", tuple(boxes))
+    T_ws = look_at(np.array([0.6, -2.5, 2.0]), np.array([0.0, 0.0, 0.7]))
+    T_sw = np.linalg.inv(T_ws)
+    rng = np.random.default_rng(1)
+    patches = tuple(_patch(k, model.feature(f), T_sw, rng, eye=T_ws[:3, 3])
+                    for k, f in enumerate(["box0.top", "box0.front"]))
+    desc = SceneDescription(patches, np.zeros((1, 1), np.int32), None, np.zeros((1, 1)), {})
+    top, front = sorted(scene_items(desc, 1e-3, MatchParams(min_pixels=50)), key=lambda it: it.patch_id)
+    el = model_elements(model)
+    index = {str(f): e for e, f in enumerate(el.feature_id)}
+    fronts = np.array([index["box0.front"], index["box1.front"]])
+    assert binary_ok(top, index["box0.top"], front, fronts, el).tolist() == [True, False]
+    assert binary_ok(top, index["box1.top"], front, fronts, el).tolist() == [False, True]
