@@ -72,6 +72,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import ndtr
 
+from scenes.geometry import perpendicular_basis
+
 from . import primitives as prim
 from .quadric import canonicalise, check_patch, evaluate, fit_quadric
 
@@ -827,7 +829,7 @@ def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, ray
 def _curvature_gain(plane: prim.PlaneFit, ps: np.ndarray, ss: np.ndarray) -> float:
     """Decrease of the trimmed chi² from the plane to the best quadratic height field over it (linear
     least squares in the plane's frame, residuals along its normal)."""
-    e1, e2 = prim._perp_basis(plane.normal)
+    e1, e2 = perpendicular_basis(plane.normal)
     c = ps.mean(axis=0)
     y = ps - c
     u, v = y @ e1, y @ e2

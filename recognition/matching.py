@@ -46,6 +46,7 @@ from recognition.describe import SceneDescription
 from recognition.pose import AxisPair, Pair, PlanePair, PointPair, PoseEstimate, estimate_pose, pose_hypotheses
 from recognition.primitives import ConeFit, CylinderFit, PlaneFit, SphereFit
 from scenes.features import Cone, Cylinder, Plane, Sphere
+from scenes.geometry import perpendicular_basis
 from scenes.model import SceneModel
 
 __all__ = [
@@ -393,6 +394,12 @@ def unary_candidates(item: SceneItem, el: ModelElements, params: MatchParams,
     return idx
 
 
+def _row_norms(x: np.ndarray) -> np.ndarray:
+    """Euclidean norms of the rows of ``x`` (N, 3): ``np.linalg.norm(x, axis=1)`` without its per-call overhead
+    (the same arithmetic, so the same values)."""
+    return np.sqrt(np.add.reduce(x * x, axis=1))
+
+
 def _line_distance(p1, a1, p2, a2):
     """Distance between lines (p1, a1) (3,) and (P2, A2) (N, 3); parallel lines use the perpendicular."""
     c = np.cross(a1, a2)
@@ -430,7 +437,7 @@ def binary_ok(i_item: SceneItem, e_i: int, j_item: SceneItem, cand: np.ndarray, 
     dist_tol = math.hypot(i_item.dist_tol, j_item.dist_tol) + lever * ang_tol
     # each position lies on its element (a face, an axis segment, a centre): within the elements' balls
     bleed = 0.5 * (length_slack - 1.0) * sum(it.length for it in (i_item, j_item) if np.isfinite(it.length))
-    gap = np.linalg.norm(el.bound_centre[cand] - el.bound_centre[e_i], axis=1)
+    gap = _row_norms(el.bound_centre[cand] - el.bound_centre[e_i])
     ok = np.abs(gap - lever) <= el.bound_radius[cand] + el.bound_radius[e_i] + dist_tol + bleed
     if gi < 2 and gj < 2:
         cs = float(ds_i @ ds_j)
@@ -629,7 +636,7 @@ class _FlatPairs:
             d_w = g["d"] @ R.T
             p_w = g["p"] @ R.T + t
             dm, pm = g["dm"], g["pm"]
-            lever = np.linalg.norm(g["p"] - centre, axis=1)
+            lever = _row_norms(g["p"] - centre)
             atol = ang_scale * g["ang_tol"] + lever_sigma
             dtol = dist_scale * g["dist_tol"] + lever_sigma * lever
             w = p_w - pm
@@ -640,14 +647,14 @@ class _FlatPairs:
                 dist = np.abs(np.sum(dm * w, axis=1))
                 eu = np.abs(np.sum(w * g["u0"], axis=1)) - g["hs"][:, 0]
                 ev = np.abs(np.sum(w * g["v0"], axis=1)) - g["hs"][:, 1]
-                rad = np.linalg.norm(w - np.sum(w * dm, axis=1)[:, None] * dm, axis=1) - g["hs"][:, 0]
+                rad = _row_norms(w - np.sum(w * dm, axis=1)[:, None] * dm) - g["hs"][:, 0]
                 excess = np.where(g["is_rect"], np.maximum(eu, ev), rad)
                 inside = excess <= hl + dtol
             elif kind in ("CYL", "CONE"):
                 c = np.sum(dm * d_w, axis=1)
                 ang = np.arccos(np.clip(np.abs(c) if kind == "CYL" else c, -1, 1))
                 along = np.sum(w * dm, axis=1)
-                dist = np.linalg.norm(w - along[:, None] * dm, axis=1)
+                dist = _row_norms(w - along[:, None] * dm)
                 if kind == "CYL":
                     inside = np.abs(along) - 0.5 * g["length"] <= hl + dtol
                 else:
@@ -656,7 +663,7 @@ class _FlatPairs:
                     dist = np.maximum(dist, np.abs(along * np.tan(g["half_angle"]) - g["radius"]))
             else:
                 ang = np.zeros(len(dm))
-                dist = np.linalg.norm(w, axis=1)
+                dist = _row_norms(w)
                 inside = np.ones(len(dm), dtype=bool)
             mis = np.maximum(ang / atol, dist / dtol)
             mis = np.where((mis <= 1.0) & inside, mis, np.inf)
@@ -685,9 +692,7 @@ def _seed_constrains(items, el: ModelElements, assigned: list[tuple[int, int]]) 
         elif k in ("CYL", "CONE"):
             dirs.append(d)
             rows.append(d) if k == "CONE" else None
-            pp = np.cross(d, [1.0, 0, 0] if abs(d[0]) < 0.9 else [0, 1.0, 0])
-            pp /= np.linalg.norm(pp)
-            rows.extend([pp, np.cross(d, pp)])
+            rows.extend(perpendicular_basis(d))
             lines.append((p, d))
             if k == "CONE":
                 pts.append(p)
@@ -852,7 +857,7 @@ class _Search:
         P = self._poses[: self._n_poses]
         cos = (np.einsum("nij,ij->n", P[:, :3, :3], T[:3, :3]) - 1.0) / 2.0
         close = (cos > math.cos(self.dedupe_angle)) & (
-            np.linalg.norm(P[:, :3, 3] - T[:3, 3], axis=1) < self.dedupe_dist)
+            _row_norms(P[:, :3, 3] - T[:3, 3]) < self.dedupe_dist)
         return bool(close.any())
 
     def _leaf(self, assigned, pose: PoseEstimate) -> None:

@@ -28,10 +28,11 @@ All functions are pure and deterministic; a degenerate input is a result with ``
 from __future__ import annotations
 
 import itertools
-import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from scenes.geometry import perpendicular_basis
 
 __all__ = [
     "PlanePair",
@@ -189,21 +190,8 @@ def apply_left(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
     return out
 
 
-def _perp2(a: np.ndarray) -> np.ndarray:
-    """Two unit vectors (2, 3) orthogonal to the unit vector ``a`` and to each other."""
-    ax, ay, az = float(a[0]), float(a[1]), float(a[2])
-    e1 = np.array([0.0, az, -ay]) if abs(ax) < 0.9 else np.array([-az, 0.0, ax])
-    e1 /= math.sqrt(float(e1 @ e1))
-    return np.stack([e1, _cross3(a, e1)])
-
-
 # ---------------------------------------------------------------------------------------------------------
 # residuals
-
-
-def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Cross product of two (3,) vectors (np.cross has a large per-call overhead)."""
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
 def _rows(pairs, signs) -> tuple[np.ndarray, ...]:
@@ -218,7 +206,7 @@ def _rows(pairs, signs) -> tuple[np.ndarray, ...]:
     Ed, Dd, sd, Ep, Qp, bp, sp = [], [], [], [], [], [], []
     for pair, s in zip(pairs, signs, strict=True):
         if isinstance(pair, PlanePair):
-            for e in _perp2(pair.n_m):
+            for e in perpendicular_basis(pair.n_m):
                 Ed.append(e)
                 Dd.append(pair.n_s)
                 sd.append(pair.sigma_angle)
@@ -227,7 +215,7 @@ def _rows(pairs, signs) -> tuple[np.ndarray, ...]:
             bp.append(pair.d_m)
             sp.append(pair.sigma_offset)
         elif isinstance(pair, AxisPair):
-            for e in _perp2(pair.a_m):
+            for e in perpendicular_basis(pair.a_m):
                 Ed.append(e)
                 Dd.append(s * pair.a_s)
                 sd.append(pair.sigma_angle)
@@ -255,16 +243,21 @@ def _rows(pairs, signs) -> tuple[np.ndarray, ...]:
 
 
 def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+    out = np.empty_like(a)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
 
 
-def _eval_rows(rows, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _eval_rows(rows, T: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     Ed, Dd, sd, Ep, Qp, bp, sp = rows
     R, t = T[:3, :3], T[:3, 3]
     d = Dd @ R.T
     p = Qp @ R.T + t
     r = np.concatenate([np.sum(Ed * d, axis=1) / sd, (np.sum(Ep * p, axis=1) - bp) / sp])
+    if not jacobian:
+        return r, None
     J = np.zeros((len(r), 6))
     nd = len(sd)
     J[:nd, :3] = _cross_rows(d, Ed) / sd[:, None]
@@ -377,9 +370,11 @@ def _translation(rows, R: np.ndarray) -> np.ndarray:
     return t
 
 
-def _refine(rows, T: np.ndarray, iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Gauss-Newton on the whitened residuals (minimum-norm steps in free directions)."""
-    r, J = _eval_rows(rows, T)
+def _refine(rows, T: np.ndarray, iterations: int, jacobian: bool = True
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Gauss-Newton on the whitened residuals (minimum-norm steps in free directions); the Jacobian at the
+    result is left out (None) for 0 iterations without ``jacobian``."""
+    r, J = _eval_rows(rows, T, jacobian or iterations > 0)
     cost = float(r @ r)
     for _ in range(iterations):
         step, *_ = np.linalg.lstsq(J, -r, rcond=1e-10)
@@ -508,7 +503,7 @@ def pose_hypotheses(pairs: tuple[Pair, ...] | list[Pair], *, iterations: int = 5
             N = Vt[rank:].T
             t = t + N @ (N.T @ (T_init[:3, 3] - t))
         T = _make_T(R, t)
-        T, r, J = _refine(rows, T, iterations)
+        T, r, J = _refine(rows, T, iterations, jacobian=assess)
         if not assess:
             out.append(PoseEstimate(True, "", T, None, 0, np.zeros((6, 0)), float(r @ r), signs, len(r)))
             continue

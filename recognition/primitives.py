@@ -49,6 +49,8 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 from scipy.spatial import cKDTree
 
+from scenes.geometry import perpendicular_basis
+
 from .quadric import QuadricFit, canonicalise, check_patch, fit_quadric
 
 __all__ = [
@@ -244,26 +246,14 @@ def _input_problem(pts: np.ndarray, sig: np.ndarray, n_min: int) -> str:
 
 def _cylinder_cov(a: np.ndarray, cov5: np.ndarray) -> np.ndarray:
     """Covariance (7, 7) of (point, axis, radius) from that (5, 5) of the local parameters: the axis turn
-    and the point shift along the two directions ``_perp_basis(a)`` perpendicular to the axis, and the
+    and the point shift along the two directions ``perpendicular_basis(a)`` perpendicular to the axis, and the
     radius."""
-    e1, e2 = _perp_basis(a)
+    e1, e2 = perpendicular_basis(a)
     M = np.zeros((7, 5))
     M[0:3, 2], M[0:3, 3] = e1, e2
     M[3:6, 0], M[3:6, 1] = e1, e2
     M[6, 4] = 1.0
     return M @ cov5 @ M.T
-
-
-def _perp_basis(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors completing ``a`` (unit) to a right-handed orthonormal basis (no np.cross: speed)."""
-    ax, ay, az = float(a[0]), float(a[1]), float(a[2])
-    if abs(ax) < 0.9:  # e1 = a x (1, 0, 0)
-        e1 = np.array([0.0, az, -ay])
-    else:  # e1 = a x (0, 1, 0)
-        e1 = np.array([-az, 0.0, ax])
-    e1 /= np.sqrt(e1 @ e1)
-    e2 = np.array([ay * e1[2] - az * e1[1], az * e1[0] - ax * e1[2], ax * e1[1] - ay * e1[0]])
-    return e1, e2
 
 
 _INIT_POINTS = 400  # points used to choose between initial values (and for the coarse iterations)
@@ -551,7 +541,7 @@ def fit_plane(
     off = float(nv @ c)
     dist = pts @ nv - off
     r = dist / sig
-    e1, e2 = _perp_basis(nv)
+    e1, e2 = perpendicular_basis(nv)
     # local parameters: tilt about (e1, e2) through the weighted centroid, offset
     J = np.stack([(d @ e1) / sig, (d @ e2) / sig, -1.0 / sig], axis=1)
     cov3 = _local_cov(r, J, np.ones(n), 3)
@@ -678,7 +668,7 @@ def _cone_fun(state, pts, sig):
     ``(rho - r0 - t h) / sqrt(1 + t²)``.
     """
     a, p, r0, t = state
-    e1, e2 = _perp_basis(a)
+    e1, e2 = perpendicular_basis(a)
     W = (pts - p) @ np.stack([e1, e2, a], axis=1)
     u1, u2, h = W[:, 0], W[:, 1], W[:, 2]
     rho = np.sqrt(u1 * u1 + u2 * u2)
@@ -707,7 +697,7 @@ def _cone_normals(state, pts):
 
 def _cyl_fun(state, pts, sig):
     a, p, r0 = state
-    e1, e2 = _perp_basis(a)
+    e1, e2 = perpendicular_basis(a)
     W = (pts - p) @ np.stack([e1, e2, a], axis=1)
     u1, u2, h = W[:, 0], W[:, 1], W[:, 2]
     rho = np.sqrt(u1 * u1 + u2 * u2)
@@ -731,7 +721,7 @@ def _regauge(a, p, r0, t, centroid):
 def _make_retract(centroid, cone: bool):
     def retract(state, step):
         a, p = state[0], state[1]
-        e1, e2 = _perp_basis(a)
+        e1, e2 = perpendicular_basis(a)
         a_new = a + step[0] * e1 + step[1] * e2
         a_new /= np.linalg.norm(a_new)
         p_new = p + step[2] * e1 + step[3] * e2
@@ -746,7 +736,7 @@ def _make_retract(centroid, cone: bool):
 def _circle_init(pts: np.ndarray, w: np.ndarray, a: np.ndarray):
     """Axis point (closest to the centroid) and radius from an algebraic circle fit orthogonal to ``a``."""
     m = (w @ pts) / w.sum()
-    e1, e2 = _perp_basis(a)
+    e1, e2 = perpendicular_basis(a)
     y = pts - m
     u, v = y @ e1, y @ e2
     A0 = np.stack([2 * u, 2 * v, np.ones_like(u)], axis=1)
@@ -895,7 +885,7 @@ def _cone_result(state, r, J, wts, pts, sig, it, ext):
     n = len(pts)
     if not (np.isfinite(t) and np.isfinite(r0)) or abs(r0) > 1e3 * ext:
         return _fail_cone(n, "cone parameters diverged: planar patch")
-    e1, e2 = _perp_basis(a)
+    e1, e2 = perpendicular_basis(a)
     cov6 = _local_cov(r, J, wts, 6)
     sgn = 1.0
     if t < 0:  # orient the axis from the apex into the surface
@@ -1034,7 +1024,7 @@ def _torus_fun(state, pts, sig):
     ``h (q . e_k) R / (rho s)`` with ``s`` the distance to the tube's centre circle.
     """
     c, a, R, r = state
-    e1, e2 = _perp_basis(a)
+    e1, e2 = perpendicular_basis(a)
     q = pts - c
     h = q @ a
     u = q - h[:, None] * a
@@ -1064,7 +1054,7 @@ def _torus_residuals(state, pts, sig):
 
 def _torus_retract(state, step):
     c, a, R, r = state
-    e1, e2 = _perp_basis(a)
+    e1, e2 = perpendicular_basis(a)
     a_new = a + step[0] * e1 + step[1] * e2
     return (c + step[2:5], a_new / np.linalg.norm(a_new), R + step[5], r + step[6])
 
@@ -1112,7 +1102,7 @@ def _bend_step(pts, sig, cyl: CylinderFit, huber: float | None):
     """
     r, J = _cyl_fun((cyl.axis, cyl.point, cyl.radius), pts, sig)
     sw = np.sqrt(_huber_w(r, huber))
-    e1, e2 = _perp_basis(cyl.axis)
+    e1, e2 = perpendicular_basis(cyl.axis)
     d = pts - cyl.point
     h = d @ cyl.axis
     u = d - h[:, None] * cyl.axis
@@ -1249,7 +1239,7 @@ def fit_torus(
     if R <= rr:
         return _fail_torus(n, f"not a ring torus (major radius {R:.3g} m <= minor radius {rr:.3g} m)")
     cov7 = _local_cov(r, J, wts, 7)
-    e1, e2 = _perp_basis(a)
+    e1, e2 = perpendicular_basis(a)
     T = np.zeros((8, 7))  # local (alpha, beta, centre, R, r) -> (centre, axis, R, r)
     T[0:3, 2:5] = np.eye(3)
     T[3:6, 0], T[3:6, 1] = e1, e2
@@ -1393,7 +1383,7 @@ def refit_along_rays(fit, points: np.ndarray, sigma: np.ndarray, subrays: np.nda
 def _range_retract(state, cyl: bool, step):
     if cyl:
         a, p, R = state
-        e1, e2 = _perp_basis(a)
+        e1, e2 = perpendicular_basis(a)
         a_new = a + step[0] * e1 + step[1] * e2
         return (a_new / np.linalg.norm(a_new), p + step[2] * e1 + step[3] * e2, state[2] + step[4])
     return (state[0] + step[:3], state[1] + step[3])
@@ -1407,7 +1397,7 @@ def _range_residuals(state, cyl: bool, subrays, rng, sig, ii):
     V = subrays[:, ii]  # (k, m, 3)
     if cyl:
         a, p, R = state
-        e1, e2 = _perp_basis(a)
+        e1, e2 = perpendicular_basis(a)
         t = _ray_hits(_CylProxy(p, a, R), V)
         X = t[..., None] * V - p
         Xa = X @ a

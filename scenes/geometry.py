@@ -48,6 +48,20 @@ def unit(v: np.ndarray) -> np.ndarray:
     return np.divide(v, n, out=np.zeros_like(v), where=n > 0)
 
 
+def perpendicular_basis(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors completing the unit vector ``a`` (3,) to a right-handed orthonormal basis
+    ``(e1, e2, a)``, ``e1 = a x x_hat`` (``a x y_hat`` when ``a`` is near ``x_hat``); no ``np.cross``, whose
+    per-call overhead dominates in the fits' inner loops."""
+    ax, ay, az = float(a[0]), float(a[1]), float(a[2])
+    if abs(ax) < 0.9:  # e1 = a x (1, 0, 0)
+        e1 = np.array([0.0, az, -ay])
+    else:  # e1 = a x (0, 1, 0)
+        e1 = np.array([-az, 0.0, ax])
+    e1 /= np.sqrt(e1 @ e1)
+    e2 = np.array([ay * e1[2] - az * e1[1], az * e1[0] - ax * e1[2], ax * e1[1] - ay * e1[0]])
+    return e1, e2
+
+
 def perpendicular(axis: np.ndarray) -> np.ndarray:
     """A unit vector perpendicular to the unit vector ``axis``, chosen deterministically."""
     a = np.asarray(axis, dtype=np.float64)
