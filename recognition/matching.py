@@ -87,7 +87,9 @@ class MatchParams:
     max_hypotheses : at most this many hypotheses are returned (half by score, half the best per item).
     max_time_s : CPU time budget of the search (seconds of this process), a safety net for pathological
         inputs (the node budget binds first otherwise, so results do not depend on the machine's load): it
-        stops with the best hypotheses found so far ...
+        stops with the best hypotheses found so far ... The default suite's slowest searches take 0.6 s of
+        CPU on an idle machine for the node budget, and up to twice that under the benchmark's two workers:
+        with 1 s one of them stopped on time, at a load-dependent node.
     max_wall_s : ... and a wall-clock cap, whatever the load.
     size_weight : items are taken in order of ``log(candidates + 1) - size_weight * log(pixels)`` (fewest
         candidates first, small patches - the likeliest spurious - later; items without candidates are
@@ -121,8 +123,8 @@ class MatchParams:
     max_nodes: int = 1500
     max_hypotheses: int = 12
     bound_ratio: float = 0.7
-    max_time_s: float = 1.0
-    max_wall_s: float = 2.0
+    max_time_s: float = 3.0
+    max_wall_s: float = 6.0
     size_weight: float = 0.25
     max_seed_size: int = 3
     stop_fraction: float = 0.9
