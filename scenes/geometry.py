@@ -63,10 +63,9 @@ def perpendicular_basis(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def perpendicular(axis: np.ndarray) -> np.ndarray:
-    """A unit vector perpendicular to the unit vector ``axis``, chosen deterministically."""
-    a = np.asarray(axis, dtype=np.float64)
-    helper = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    return unit(np.cross(a, helper))
+    """A unit vector perpendicular to the unit vector ``axis``, chosen deterministically (the first of
+    :func:`perpendicular_basis`)."""
+    return perpendicular_basis(axis)[0]
 
 
 def frame_from_z(axis: np.ndarray, x_hint: np.ndarray | None = None) -> np.ndarray:
