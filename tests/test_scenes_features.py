@@ -8,7 +8,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from scenes.features import Cone, Cylinder, Plane, Sphere, Torus, box_planes
-from scenes.geometry import look_at, make_transform, rotation_about, transform_points, unit
+from scenes.geometry import (
+    look_at,
+    make_transform,
+    perpendicular,
+    perpendicular_basis,
+    rotation_about,
+    transform_points,
+    unit,
+)
 
 
 def _features():
@@ -98,3 +106,15 @@ def test_look_at_is_opencv_frame():
     np.testing.assert_allclose(np.linalg.det(T[:3, :3]), 1.0)
     with pytest.raises(ValueError, match="coincide"):
         look_at([0, 0, 0], [0, 0, 0])
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.floats(-1, 1), min_size=3, max_size=3).filter(lambda v: np.linalg.norm(v) > 0.1))
+def test_perpendicular_basis_completes_a_right_handed_orthonormal_frame(v):
+    a = unit(np.array(v))
+    e1, e2 = perpendicular_basis(a)
+    frame = np.column_stack([e1, e2, a])
+    np.testing.assert_allclose(frame.T @ frame, np.eye(3), atol=1e-12)
+    assert np.linalg.det(frame) == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(e1, unit(np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])), atol=1e-12)
+    np.testing.assert_array_equal(perpendicular(a), e1)
