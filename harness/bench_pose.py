@@ -1,8 +1,9 @@
 """Benchmark of localisation (matching + pose + verification + ICP) against the simulator's truth.
 
-``python -m harness.bench_pose [--views N] [--groups mockup,factory_bay]`` scans N viewpoints of the
-perturbed mock-up (``mockup_laser``) and factory bay (``factory_scanner``), describes each scan, localises
-it with no pose prior and prints per group: the success rate over the trials whose truth constrains all
+``python -m harness.bench_pose [--views N] [--groups mockup,factory_bay,kinect]`` scans N viewpoints of the
+perturbed mock-up (``mockup_laser``) and factory bay (``factory_scanner``; ``kinect``: the bay with
+``kinect_like`` under 4 m, as in the default suite), describes each scan, localises it with no pose prior
+and prints per group: the success rate over the trials whose truth constrains all
 6 DOF (:func:`evaluation.pose.constrains_pose`), median/p90 rotation and translation errors before and
 after ICP, and the time per frame of matching + pose + verification + ICP (and of the final prediction).
 """
@@ -33,13 +34,19 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=10, help="viewpoints per perturbation seed and group")
     ap.add_argument("--seeds", type=int, default=2, help="perturbation seeds per group")
-    ap.add_argument("--groups", default="mockup,factory_bay")
+    ap.add_argument("--groups", default="mockup,factory_bay", help="comma-separated: mockup, factory_bay, kinect")
     ap.add_argument("--suite-seed", type=int, default=11)
     args = ap.parse_args(argv)
-    sensors = {"mockup": "mockup_laser", "factory_bay": "factory_scanner"}
-    groups = [{"scene": g, "perturbation": f"{g}_perturbation", "perturbation_seeds": list(range(args.seeds)),
-               "sensor": sensors[g], "viewpoints": args.views, "noise_seeds": [0]}
-              for g in args.groups.split(",")]
+    known = {"mockup": {"scene": "mockup", "sensor": "mockup_laser"},
+             "factory_bay": {"scene": "factory_bay", "sensor": "factory_scanner"},
+             "kinect": {"scene": "factory_bay", "sensor": "kinect_like", "max_range": 4.0}}
+    names = args.groups.split(",")
+    unknown = [g for g in names if g not in known]
+    if unknown:
+        ap.error(f"unknown group(s) {', '.join(unknown)}; choose from {', '.join(known)}")
+    groups = [{**known[g], "perturbation": f"{known[g]['scene']}_perturbation",
+               "perturbation_seeds": list(range(args.seeds)), "viewpoints": args.views, "noise_seeds": [0]}
+              for g in names]
     suite = suite_from_dict({"schema": "suite/1", "name": "bench_pose", "seed": args.suite_seed,
                              "methods": {"core": {}}, "groups": groups})
     rows: dict[str, list[dict]] = {}
