@@ -821,11 +821,12 @@ class _Search:
                     for h in hyps[:2]:
                         self._complete(new, h)
                     continue
+            # pairs that fix fewer than 6 DOF are kept, at every depth, for when no seed fixes all 6: a floor and
+            # a wall with nothing else consistent (the pipe patch a merge) still place the sensor but for a shift
+            # along the wall, which the caller may find by agreement
+            self.partial.append((sum(_DIMS[self.items[k].kind] for k, _ in new), new))
             if len(new) < max_depth:
                 self._seed([], new, max_depth, last)
-            else:
-                dims = sum(_DIMS[self.items[k].kind] for k, _ in new)
-                self.partial.append((dims, new))
 
     def _complete(self, seed: list[tuple[int, int]], pose: PoseEstimate) -> None:
         """Every other item takes its best element consistent with the seed's pose, all at once."""

@@ -230,3 +230,24 @@ def test_faces_pair_only_with_faces_near_enough_on_the_model():
     fronts = np.array([index["box0.front"], index["box1.front"]])
     assert binary_ok(top, index["box0.top"], front, fronts, el).tolist() == [True, False]
     assert binary_ok(top, index["box1.top"], front, fronts, el).tolist() == [False, True]
+
+
+def test_a_floor_and_a_wall_alone_give_a_hypothesis_free_along_the_wall():
+    """Two consistent pairs that fix 5 DOF, and no third item consistent with them (here none at all): the
+    tree still returns them, as hypotheses with one translation left free, so that the caller can place
+    them by agreement (views whose pipe patch was a merge of a pipe and its reducer had no hypothesis at
+    all). The wall patch fits the model's wall and its side wall alike: both interpretations come back."""
+    model, desc, T_ws, seen = _scene(False)
+    keep = tuple(p for p in desc.patches if seen[p.id] in ("floor", "wall"))
+    desc = SceneDescription(keep, desc.labels, None, desc.sigma, {})
+    res = match(desc, model, 1e-3, MatchParams(min_pixels=50))
+    el = res.elements
+    by_pairs = {tuple(sorted((seen[desc.patches[res.items[i].patch_index].id], str(el.feature_id[e]))
+                             for i, e in h.pairs)): h for h in res.hypotheses}
+    right = by_pairs[(("floor", "floor"), ("wall", "wall"))]
+    assert (("floor", "floor"), ("wall", "side")) in by_pairs
+    assert right.pose.free_dof == 1
+    basis = right.pose.free_basis[:, 0]
+    assert np.linalg.norm(basis[:3]) < 1e-6  # a pure translation ...
+    along = np.cross(model.feature("wall").normal, model.feature("floor").normal)
+    assert abs(basis[3:] @ along) / np.linalg.norm(basis[3:]) == pytest.approx(1.0, abs=1e-6)  # ... along the wall
