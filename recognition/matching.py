@@ -423,7 +423,7 @@ def _point_line_distance(p, a, q):
 
 
 def binary_ok(i_item: SceneItem, e_i: int, j_item: SceneItem, cand: np.ndarray, el: ModelElements,
-              length_slack: float = 1.15) -> np.ndarray:
+              length_slack: float = MatchParams.length_slack) -> np.ndarray:
     """Boolean mask over ``cand`` (element indices for ``j_item``) consistent with the pair
     ``(i_item, e_i)``: angle between directions, a distance measure, and the distance between the items'
     positions within the bounds of their elements (``length_slack``: segmentation bleed, as in the unary
