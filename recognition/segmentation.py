@@ -97,6 +97,7 @@ from recognition.surface_fit import (
     quadric_monomials,
     ray_residuals,
 )
+from scenes.geometry import perpendicular_basis
 
 __all__ = [
     "SurfaceType",
@@ -1987,11 +1988,15 @@ def _split_along_axis(labels: np.ndarray, st: _State, normals: np.ndarray, param
         changed = False
         big = [idx for idx in _groups(out).values() if idx.size >= params.axis_split_pixels]
         # curved: no plane fits it (the H-K classes are no guide: under strong noise a pipe's are mostly planar)
-        _, zp = _quick_fits([_subsample(v, params.max_fit_points) for v in big], np.ones(len(big), bool), st)
-        for idx, z in zip(big, zp, strict=True):
-            if _rms(z) <= params.merge_k:
-                continue
-            side = _axial_pieces(st.X[idx], st.S[idx], normals[idx], params.min_region_pixels)
+        samples = [_subsample(v, params.max_fit_points) for v in big]
+        _, zp = _quick_fits(samples, np.ones(len(big), bool), st)
+        curved = [k for k in range(len(big)) if not _rms(zp[k]) <= params.merge_k]
+        _, zq = _quick_fits([samples[k] for k in curved], np.zeros(len(curved), bool), st)
+        for k, z in zip(curved, zq, strict=True):
+            idx = big[k]
+            # one quadric fits the patch within noise: a sphere or a dome is not cut into pipes
+            side = _axial_pieces(st.X[idx], st.S[idx], normals[idx], params.min_region_pixels,
+                                 several_axes=not _rms(z) <= params.merge_k)
             if side is None:
                 continue
             if out is labels:
@@ -2005,7 +2010,7 @@ def _split_along_axis(labels: np.ndarray, st: _State, normals: np.ndarray, param
 
 
 def _axial_pieces(x: np.ndarray, s: np.ndarray, n: np.ndarray, min_pixels: int, fit_points: int = 2000,
-                  flat_fraction: float = 0.03, min_bins: int = 3) -> np.ndarray | None:
+                  flat_fraction: float = 0.03, min_bins: int = 3, several_axes: bool = True) -> np.ndarray | None:
     """Two pieces (0 and 1 per point) of a curved patch along its axis, or None when it is one surface.
 
     The axis is the direction the normals turn about (shared by a pipe and its reducer); the patch is cut
@@ -2026,8 +2031,11 @@ def _axial_pieces(x: np.ndarray, s: np.ndarray, n: np.ndarray, min_pixels: int, 
     if ok.sum() < 20:
         return None
     w = np.linalg.eigvalsh(n[ok].T @ n[ok])
-    if w[0] > 0.05 * w.sum() or w[1] < 0.05 * w.sum():
-        return None  # the normals do not turn about one axis (a doubly curved patch), or barely turn (a plane)
+    if w[1] < 0.05 * w.sum():
+        return None  # the normals barely turn (a plane)
+    if w[0] > 0.05 * w.sum():
+        # the normals do not turn about one axis: a doubly curved patch, or two pipes and their elbow
+        return _dominant_cylinder(x, s, n, ok, min_pixels, fit_points) if several_axes else None
     # the axis: the direction on which the normals' projection is most nearly constant (zero on a cylinder,
     # the sine of the half-angle on a cone; the normals' scatter itself tilts on a partly seen cone)
     axis = np.linalg.eigh(np.cov(n[ok].T))[1][:, 0]
@@ -2050,6 +2058,62 @@ def _axial_pieces(x: np.ndarray, s: np.ndarray, n: np.ndarray, min_pixels: int, 
 
     cyl = fit_cylinder(x[sub], s[sub], init=(centre, axis, radius), max_points=600, huber=1.5, max_iter=10)
     if cyl.ok and _axial_cut(x, s, cyl.point, cyl.axis, cyl.radius, min_bins, flat_fraction) is None:
+        return None
+    return side
+
+
+def _dominant_cylinder(x: np.ndarray, s: np.ndarray, n: np.ndarray, ok: np.ndarray, min_pixels: int,
+                       fit_points: int, keep: float = 0.6, rounds: int = 4, k: float = 3.0) -> np.ndarray | None:
+    """Two pieces (0 per point on the patch's dominant cylinder, 1 elsewhere) of a patch whose normals turn
+    about more than one axis, or None.
+
+    Two pipes joined by an elbow, merged under strong noise: the normals of each pipe lie on a great circle
+    about its axis. The axis of the most populous circle comes from the normals' scatter, trimmed ``rounds``
+    times to the ``keep`` fraction nearest the circle; the pipe's section across it from the points and
+    normals (trimmed likewise), then a cylinder fitted from there, which takes the points within ``k`` sigma
+    of it. None unless that axis holds a clean circle, the fit succeeds and both pieces hold at least
+    ``min_pixels`` points and a tenth of the patch. ``ok``: the points whose normal is defined.
+    """
+    from recognition.primitives import fit_cylinder
+
+    nn = n[ok]
+    near = np.ones(len(nn), bool)
+    for _ in range(rounds):
+        axis = np.linalg.eigh(nn[near].T @ nn[near])[1][:, 0]
+        r = np.abs(nn @ axis)
+        near = r <= np.quantile(r, keep)
+    w = np.linalg.eigvalsh(nn[near].T @ nn[near])
+    if w[0] > 0.05 * w.sum() * keep or w[1] < 0.05 * w.sum():
+        return None  # no pipe among the normals: a doubly curved surface (a tank's dome, an elbow alone)
+    on = np.flatnonzero(ok)[near]
+    sub = on[_subsample(np.arange(on.size), fit_points)]
+    # the section across the axis: each point of the pipe lies its radius along its normal from the pipe's
+    # centre (p = c + R n, linear in c and R; the other pipe's points, seen across, do not); trimmed
+    # ``rounds`` times to the points that agree best, it starts the cylinder fit
+    e1, e2 = perpendicular_basis(axis)
+    P = np.stack([x[sub] @ e1, x[sub] @ e2], axis=1)
+    N = np.stack([n[sub] @ e1, n[sub] @ e2], axis=1)
+    use = np.ones(len(P), bool)
+    for _ in range(rounds):
+        m = int(use.sum())
+        A = np.zeros((2 * m, 3))
+        A[0::2, 0] = A[1::2, 1] = 1.0
+        A[:, 2] = N[use].reshape(-1)
+        cx, cy, radius = np.linalg.lstsq(A, P[use].reshape(-1), rcond=None)[0]
+        off = np.linalg.norm(P - [cx, cy] - radius * N, axis=1)
+        use = off <= max(np.quantile(off, keep), k * float(np.median(s[sub])))
+    if not radius > 0:
+        return None
+    sub = sub[use]
+    cyl = fit_cylinder(x[sub], s[sub], init=(cx * e1 + cy * e2, axis, float(radius)), max_points=600, huber=1.5,
+                       max_iter=10)
+    if not cyl.ok:
+        return None
+    q = x - cyl.point
+    t = q @ cyl.axis
+    dist = np.abs(np.linalg.norm(q - np.outer(t, cyl.axis), axis=1) - cyl.radius)
+    side = (dist > k * s).astype(np.int64)
+    if min(np.sum(side == 0), np.sum(side == 1)) < max(min_pixels, len(x) // 10):
         return None
     return side
 

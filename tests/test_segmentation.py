@@ -875,3 +875,61 @@ def test_a_far_thin_pipe_and_its_reducer_are_cut_with_longer_slices():
         x, normals = _pipe_run_points(lambda t: np.full_like(t, 0.07), 1.0, 0.008, seed=seed, n=700)
         assert _axial_pieces(x, np.full(len(x), 0.008), normals, 50) is None
     assert len(errors) >= 5 and np.median(errors) < 0.1
+
+
+def _elbow_run_points(sigma: float, seed: int = 0, n: int = 6000, r: float = 0.1, bend: float = 0.25,
+                      len_a: float = 1.0, len_b: float = 0.75):
+    """Points, normals and part (0: pipe along x, 1: its 90 deg elbow, 2: pipe along y) of the front half of a
+    pipe run of radius ``r`` at z = 3 m seen from the origin, with radial noise ``sigma``."""
+    rng = np.random.default_rng(seed)
+    s = rng.uniform(0.0, len_a + 0.5 * np.pi * bend + len_b, n)
+    part = np.digitize(s, [len_a, len_a + 0.5 * np.pi * bend])
+    th = np.clip((s - len_a) / bend, 0.0, 0.5 * np.pi)
+    centre = np.where((part == 0)[:, None], np.column_stack([s, np.zeros(n), np.zeros(n)]),
+                      np.where((part == 1)[:, None],
+                               np.column_stack([len_a + bend * np.sin(th), bend - bend * np.cos(th), np.zeros(n)]),
+                               np.column_stack([np.full(n, len_a + bend), bend + s - len_a - 0.5 * np.pi * bend,
+                                                np.zeros(n)])))
+    tangent = np.column_stack([np.cos(th), np.sin(th), np.zeros(n)])  # (1, 0, 0) on pipe 0, (0, 1, 0) on pipe 2
+    towards_sensor = np.array([0.0, 0.0, -1.0])
+    phi = rng.uniform(-1.2, 1.2, n)
+    radial = np.cos(phi)[:, None] * towards_sensor + np.sin(phi)[:, None] * np.cross(tangent, towards_sensor)
+    x = centre + [0.0, 0.0, 3.0] + (r + rng.normal(0.0, sigma, n))[:, None] * radial
+    return x, radial, part
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_two_pipes_merged_with_their_elbow_are_cut_apart(seed):
+    """Two perpendicular pipes (1 m and 0.75 m) and their elbow merged under 8 mm noise, normals 0.1 rad off:
+    the normals turn about two axes, so the cut follows the longer pipe's fitted cylinder, not an axial
+    profile. Every point of the other pipe leaves it, at most 1 % of its own do (the elbow splits between
+    them)."""
+    from recognition.segmentation import _axial_pieces
+
+    x, normals, part = _elbow_run_points(0.008, seed)
+    normals = normals + np.random.default_rng(seed + 100).normal(0.0, 0.1, normals.shape)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    side = _axial_pieces(x, np.full(len(x), 0.008), normals, 200)
+    assert side is not None
+    assert np.mean(side[part == 0] == 0) >= 0.99
+    assert np.all(side[part == 2] == 1)
+
+
+def test_a_sphere_is_not_cut_into_pipes():
+    """A close sphere's normals turn about every axis; a band of them passes for a pipe's, and cut about a
+    cylinder alone it would be (``several_axes``). The splitter first asks whether one quadric fits the
+    patch within noise: it does, and the sphere stays whole."""
+    from recognition.segmentation import _axial_pieces, _split_along_axis, _State
+
+    pts, sig, ids = S.render([S.sphere([0.2, 0.1, 1.2], 0.6, 1)], CAM, 0.002, np.random.default_rng(0))
+    on = ids.ravel() == 1
+    X = np.where(np.isfinite(pts), pts, 0.0).reshape(-1, 3)
+    normals = np.full(X.shape, np.nan)
+    normals[on] = (X[on] - [0.2, 0.1, 1.2]) / 0.6
+    sigma = np.where(on, 0.002, np.nan)
+    assert _axial_pieces(X[on], sigma[on], normals[on], 200, several_axes=True) is not None
+    params = SegmentationParams()
+    st = _State(X=X, U=X / np.maximum(np.linalg.norm(X, axis=1, keepdims=True), 1e-12), S=sigma,
+                hk=np.full(len(X), int(SurfaceType.ELLIPTIC), np.int64), params=params)
+    labels = np.where(ids == 1, 0, -1).astype(np.int32)
+    np.testing.assert_array_equal(_split_along_axis(labels, st, normals, params), labels)
