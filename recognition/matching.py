@@ -377,7 +377,9 @@ def unary_candidates(item: SceneItem, el: ModelElements, params: MatchParams,
         ok &= item.length <= slack * el.diag[idx] + item.dist_tol
         ok &= item.area <= slack**2 * el.area[idx] + item.length * item.dist_tol
     elif item.kind in ("CYL", "SPH"):
-        ok &= np.abs(el.radius[idx] - item.radius) <= item.radius_tol
+        # a radius not known to within its own size (a wall strip fitted as a cylinder of 20 m) pairs with no
+        # pipe or tank: any of them would pass, and its axis or centre would then fix the pose at random
+        ok &= (np.abs(el.radius[idx] - item.radius) <= item.radius_tol) & (item.radius_tol < item.radius)
         if item.kind == "CYL":
             ok &= item.length <= slack * el.length[idx] + item.dist_tol
     elif item.kind == "CONE":

@@ -207,6 +207,25 @@ def test_a_patch_without_candidates_is_left_to_the_wildcard():
     assert np.linalg.norm(res.hypotheses[0].pose.T_world_sensor[:3, 3] - T_ws[:3, 3]) < 0.01
 
 
+def test_a_cylinder_whose_radius_is_unknown_pairs_with_no_pipe():
+    """A strip of wall fitted as a cylinder of 20 m whose radius sigma is larger still: every pipe's radius is
+    within its tolerance, but a radius not known to within its own size tells nothing; the item has no
+    candidate (its axis would otherwise fix the pose at random)."""
+    from dataclasses import replace
+
+    import recognition.matching as M
+
+    model, desc, T_ws, seen = _scene(False)
+    params = MatchParams(min_pixels=50)
+    el = model_elements(model)
+    pipe = next(it for it in M.scene_items(desc, 1e-3, params) if it.kind == "CYL")
+    assert len(M.unary_candidates(pipe, el, params)) > 0
+    strip = replace(pipe, radius=19.7, radius_tol=134.0)
+    assert np.all(np.abs(el.radius[el.of_kind("CYL")] - strip.radius) <= strip.radius_tol)
+    assert len(M.unary_candidates(strip, el, params)) == 0
+    assert len(M.unary_candidates(replace(pipe, radius_tol=0.99 * pipe.radius), el, params)) > 0
+
+
 def test_faces_pair_only_with_faces_near_enough_on_the_model():
     """Two items' positions lie on their elements: a box's top pairs with its own front, not with the front
     of an identical box 4 m away (the angle between the faces cannot tell them apart, and the faces are not
