@@ -304,3 +304,20 @@ def test_a_coaxial_patch_in_front_of_a_feature_is_the_feature_grown():
     assert _altered_by_patches(f, [32] + _patches_in_place(f, in_front, sizes, prims, 5e-3), prims, sizes,
                                params) == [11]
     assert _altered_by_patches(f, [32], prims, sizes, params) == []  # the OTH rim patch alone says nothing
+
+
+@pytest.mark.parametrize(("allowance_m", "agrees"), [(0.10, True), (0.02, False)])
+def test_a_plane_fit_tilted_within_the_allowance_over_its_patch_is_no_move(allowance_m, agrees):
+    """A far Kinect-like wall's plane fit comes out 2.5 deg off the model (2.8 deg off the fit of its pixels'
+    true ranges; disparity quantisation alone makes 1.1): over its 1 m patch that is 4.4 cm. Within a 10 cm
+    allowance every point is where the model says, so the wall is in place (before, its normal alone made it a
+    'small move', then 'moved' by 0.4 m); with a 2 cm allowance the tilt is a move."""
+    from recognition.change import _tight
+    from scenes.features import Plane
+
+    wall = Plane("wall", centre=np.array([-10.0, 0.0, 3.0]), normal=np.array([1.0, 0.0, 0.0]),
+                 u_axis=np.array([0.0, 0.0, 1.0]), half_size=(3.0, 8.0))
+    tilt = np.radians(2.5)
+    fitted = {"normal": np.array([np.cos(tilt), np.sin(tilt), 0.0]), "normal_sigma": 0.0016,
+              "centroid": np.array([-10.0, 1.3, 1.0]), "extent": 1.0}
+    assert _tight(wall, fitted, allowance_m) is agrees
