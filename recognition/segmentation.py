@@ -2039,9 +2039,7 @@ def _axial_pieces(x: np.ndarray, s: np.ndarray, n: np.ndarray, min_pixels: int, 
     # the axis: the direction on which the normals' projection is most nearly constant (zero on a cylinder,
     # the sine of the half-angle on a cone; the normals' scatter itself tilts on a partly seen cone)
     axis = np.linalg.eigh(np.cov(n[ok].T))[1][:, 0]
-    e1 = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(axis, e1)
+    e1, e2 = perpendicular_basis(axis)
     sub = _subsample(np.arange(len(x)), fit_points)
     P = np.stack([x[sub] @ e1, x[sub] @ e2], axis=1)  # the section: an algebraic circle across the axis
     sol = np.linalg.lstsq(np.column_stack([2.0 * P, np.ones(len(P))]), np.sum(P**2, axis=1), rcond=None)[0]
