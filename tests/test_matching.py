@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from recognition.classify import PatchClassification
 from recognition.describe import SceneDescription, ScenePatch
@@ -226,6 +228,41 @@ def test_a_cylinder_whose_radius_is_unknown_pairs_with_no_pipe():
     assert len(M.unary_candidates(replace(pipe, radius_tol=0.99 * pipe.radius), el, params)) > 0
 
 
+@settings(max_examples=60, deadline=None)
+@given(a=st.floats(0.2, 20.0), ratio=st.floats(0.01, 1.0), theta=st.floats(0.0, np.pi))
+def test_the_least_width_of_a_rectangle_is_its_short_side(a, ratio, theta):
+    """Points filling an a x b rectangle turned by any angle: the least width over directions 5 deg apart is
+    b, up to sin(2.5 deg) of the diagonal."""
+    from recognition.matching import _min_width
+
+    b = a * ratio
+    u, v = np.meshgrid(np.linspace(-a / 2, a / 2, 41), np.linspace(-b / 2, b / 2, 41))
+    c, s = np.cos(theta), np.sin(theta)
+    uv = np.column_stack([u.ravel(), v.ravel()]) @ np.array([[c, s], [-s, c]])
+    w = _min_width(uv, trim=0.0)
+    assert b * (1 - 1e-9) <= w <= b + 0.044 * np.hypot(a, b)
+
+
+def test_a_patch_wider_than_a_thin_face_does_not_pair_with_it():
+    """A wall patch 2 m high passes the length and area tests of a ledge 20 m long and 0.2 m deep (the top of a
+    wall, the end face of a partition), but no 2 m wide piece of surface lies on it."""
+    from dataclasses import replace
+
+    import recognition.matching as M
+
+    model, desc, _, _ = _scene(False)
+    ledge = Plane("ledge", centre=[0, 5, 2], normal=[0, 0, 1], u_axis=[1, 0, 0], half_size=(10, 0.1))
+    model = SceneModel("with a ledge", model.objects + (Object("shelf", "wall", (ledge,)),))
+    el = model_elements(model)
+    k = int(np.flatnonzero(el.feature_id == "ledge")[0])
+    params = MatchParams(min_pixels=50)
+    wall = next(it for it in M.scene_items(desc, 1e-3, params) if desc.patches[it.patch_index].id == 1)
+    assert wall.width == pytest.approx(2.0, abs=0.15) and wall.length > 2.5
+    assert k in M.unary_candidates(wall, el, replace(params, width_test=False))
+    assert k not in M.unary_candidates(wall, el, params)
+    assert int(np.flatnonzero(el.feature_id == "wall")[0]) in M.unary_candidates(wall, el, params)
+
+
 def test_faces_pair_only_with_faces_near_enough_on_the_model():
     """Two items' positions lie on their elements: a box's top pairs with its own front, not with the front
     of an identical box 4 m away (the angle between the faces cannot tell them apart, and the faces are not
@@ -270,3 +307,10 @@ def test_a_floor_and_a_wall_alone_give_a_hypothesis_free_along_the_wall():
     assert np.linalg.norm(basis[:3]) < 1e-6  # a pure translation ...
     along = np.cross(model.feature("wall").normal, model.feature("floor").normal)
     assert abs(basis[3:] @ along) / np.linalg.norm(basis[3:]) == pytest.approx(1.0, abs=1e-6)  # ... along the wall
+
+
+@pytest.mark.parametrize("field, value", [("width_trim", 0.5), ("width_trim", -0.1), ("max_nodes", 0),
+                                          ("length_slack", 0.0)])
+def test_impossible_match_parameters_are_refused(field, value):
+    with pytest.raises(ValueError, match=field):
+        MatchParams(**{field: value})
