@@ -378,6 +378,8 @@ def _item(index, patch, fit, pitch, params: MatchParams) -> SceneItem | None:
 
 
 _WIDTH_DIRECTIONS = 36  # in-plane directions (5 deg apart) over which the least width is sought
+# the least of those widths exceeds the true least width by at most this share of the patch's extent
+_WIDTH_STEP_ERROR = math.sin(math.pi / (2 * _WIDTH_DIRECTIONS))
 
 
 def _min_width(uv: np.ndarray, trim: float, max_points: int = 2000) -> float:
@@ -406,8 +408,8 @@ def unary_candidates(item: SceneItem, el: ModelElements, params: MatchParams,
         ok &= item.length <= slack * el.diag[idx] + item.dist_tol
         ok &= item.area <= slack**2 * el.area[idx] + item.length * item.dist_tol
         if params.width_test and np.isfinite(item.width):
-            # the least width over directions 5 deg apart exceeds the true one by at most sin(2.5 deg) x length
-            ok &= item.width <= slack * 2.0 * el.half_size[idx].min(axis=1) + item.dist_tol + 0.044 * item.length
+            ok &= item.width <= (slack * 2.0 * el.half_size[idx].min(axis=1) + item.dist_tol
+                                 + _WIDTH_STEP_ERROR * item.length)
     elif item.kind in ("CYL", "SPH"):
         # a radius not known to within its own size (a wall strip fitted as a cylinder of 20 m) pairs with no
         # pipe or tank: any of them would pass, and its axis or centre would then fix the pose at random
