@@ -84,6 +84,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from recognition.derivatives import clean_windows, jump_pairs, norm3, quadratic_derivatives, ray_angles, savgol_kernels
+from recognition.primitives import fit_cylinder
 from recognition.quadric import MONOMIAL_GRADIENT, quadric_matrices, taubin_fit
 from recognition.surface_fit import (
     _MIN_GRAZING,
@@ -2052,8 +2053,6 @@ def _axial_pieces(x: np.ndarray, s: np.ndarray, n: np.ndarray, min_pixels: int, 
         return None
     # the normals' axis of a noisy pipe may be a degree off, which bends its profile: a pipe whose fitted
     # cylinder's profile is one line is one surface
-    from recognition.primitives import fit_cylinder
-
     cyl = fit_cylinder(x[sub], s[sub], init=(centre, axis, radius), max_points=600, huber=1.5, max_iter=10)
     if cyl.ok and _axial_cut(x, s, cyl.point, cyl.axis, cyl.radius, min_bins, flat_fraction) is None:
         return None
@@ -2072,8 +2071,6 @@ def _dominant_cylinder(x: np.ndarray, s: np.ndarray, n: np.ndarray, ok: np.ndarr
     of it. None unless that axis holds a clean circle, the fit succeeds and both pieces hold at least
     ``min_pixels`` points and a tenth of the patch. ``ok``: the points whose normal is defined.
     """
-    from recognition.primitives import fit_cylinder
-
     nn = n[ok]
     near = np.ones(len(nn), bool)
     for _ in range(rounds):
