@@ -939,9 +939,11 @@ class _Search:
             self.partial.sort(key=lambda x: -x[0])
             for _, pairs in self.partial[: max_hypotheses]:
                 hyps = self.pose(pairs, iterations=3)
-                if hyps:
-                    full = pairs + [(i, -1) for i in range(len(self.items)) if i not in {k for k, _ in pairs}]
-                    out.append(Hypothesis(tuple(sorted(full)), hyps[0],
+                full = pairs + [(i, -1) for i in range(len(self.items)) if i not in {k for k, _ in pairs}]
+                # every pose the pairs admit: a pipe's axis fixes the rotation only up to its sign, and which
+                # of the two the solver lists first turns on the last bits of the fits
+                for h in hyps:
+                    out.append(Hypothesis(tuple(sorted(full)), h,
                                           float(sum(self.items[i].weight for i, _ in pairs)), len(pairs)))
         return out
 
