@@ -974,3 +974,26 @@ def test_a_sphere_is_not_cut_into_pipes():
                 hk=np.full(len(X), int(SurfaceType.ELLIPTIC), np.int64), params=params)
     labels = np.where(ids == 1, 0, -1).astype(np.int32)
     np.testing.assert_array_equal(_split_along_axis(labels, st, normals, params), labels)
+
+
+def test_peeling_keeps_the_staircase_border_of_a_thin_diagonal_strip():
+    """The peel removes a patch's corners and spurs, but a strip eight pixels wide running down a steep
+    diagonal (three columns per row) has a weak pixel at each end of every row: those close a 2 x 2 block of
+    the strip and stay, or the strip would lose a quarter of its pixels. A rectangle still loses its four
+    corners, and a one-pixel spur still goes."""
+    from recognition.segmentation import _peel_weak
+
+    labels = np.full((60, 240), -1, np.int32)
+    for r in range(60):
+        labels[r, 200 - 3 * r:208 - 3 * r] = 0
+    labels[5:35, 210:238] = 1
+    labels[20, 209] = 1  # a spur
+    no_jump_h = np.zeros((60, 239), bool)
+    no_jump_v = np.zeros((59, 240), bool)
+    out = _peel_weak(labels, 200, no_jump_h, no_jump_v)
+    strip = labels == 0
+    assert (out[strip] == 0).sum() >= strip.sum() - 6  # the overhangs of its first and last rows go
+    assert (out[1:-1][strip[1:-1]] == 0).all()
+    for r, c in ((5, 210), (5, 237), (34, 210), (34, 237), (20, 209)):
+        assert out[r, c] == -1
+    assert (out == 1).sum() == (labels == 1).sum() - 5
