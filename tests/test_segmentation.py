@@ -736,26 +736,34 @@ def test_unique_pairs_equal_numpy_unique_rows(rows):
     np.testing.assert_array_equal(counts, want_counts)
 
 
-def test_border_pixels_on_the_wrong_face_move_to_the_face_they_lie_on():
-    """A label border four columns past a roof's crease: the columns of the other face that fit it clearly
-    better go back to it; no pixel leaves the face it lies on, and a right labelling is left alone."""
-    from recognition.segmentation import _neighbour_links, _reassign, _State
+def _roof(seed: int):
+    """A roof of two half-planes meeting at a crease, rendered with sigma 0.2 mm and no jumps: the valid
+    mask, the crease's first column, the right labels (face 0 and 1), the state and links of ``_reassign``."""
+    from recognition.segmentation import _neighbour_links, _State
 
     sigma = 2e-4
     n1, n2 = np.array([1.0, 0, -1.0]), np.array([-1.0, 0, -1.0])
     surfaces = [S.Surface(lambda d: _halfplane(d, n1, x_sign=-1), 1),
                 S.Surface(lambda d: _halfplane(d, n2, x_sign=1), 2)]
-    pts, _, ids = S.render(surfaces, CAM, sigma, np.random.default_rng(5))
+    pts, _, ids = S.render(surfaces, CAM, sigma, np.random.default_rng(seed))
     valid = ids > 0
     crease = int(np.flatnonzero((ids == 2).any(axis=0)).min())
     right = np.where(valid, ids - 1, -1).astype(np.int32)
-    shifted = np.where(valid, (np.arange(CAM.width)[None, :] >= crease + 4).astype(np.int32), -1)
     X = pts.reshape(-1, 3)
     st = _State(X=X, U=X / np.linalg.norm(X, axis=1, keepdims=True), S=np.where(valid.ravel(), sigma, np.nan),
                 hk=np.ones(X.shape[0], np.int64), params=SegmentationParams())
     no_jump_h = np.zeros((CAM.height, CAM.width - 1), bool)
     no_jump_v = np.zeros((CAM.height - 1, CAM.width), bool)
-    links = _neighbour_links(valid.shape, valid, no_jump_h, no_jump_v)
+    return valid, crease, right, st, _neighbour_links(valid.shape, valid, no_jump_h, no_jump_v), no_jump_h, no_jump_v
+
+
+def test_border_pixels_on_the_wrong_face_move_to_the_face_they_lie_on():
+    """A label border four columns past a roof's crease: the columns of the other face that fit it clearly
+    better go back to it; no pixel leaves the face it lies on, and a right labelling is left alone."""
+    from recognition.segmentation import _reassign
+
+    valid, crease, right, st, links, no_jump_h, no_jump_v = _roof(5)
+    shifted = np.where(valid, (np.arange(CAM.width)[None, :] >= crease + 4).astype(np.int32), -1)
 
     out = _reassign(shifted, st, links, no_jump_h, no_jump_v, rounds=16, margin=1.0)
     wrong_before = int((shifted != right).sum())
@@ -771,28 +779,15 @@ def test_fragments_go_to_the_face_they_lie_on():
     """A fragment's own fit follows its few pixels, so it never loses a residual comparison: its pixels go
     to the linked patch whose surface fits them (here: 30 pixels inside one face of a roof, and 30 pixels of
     the other face just past the crease, both linked to each face)."""
-    from recognition.segmentation import _neighbour_links, _reassign, _State
+    from recognition.segmentation import _reassign, _State
 
-    sigma = 2e-4
-    n1, n2 = np.array([1.0, 0, -1.0]), np.array([-1.0, 0, -1.0])
-    surfaces = [S.Surface(lambda d: _halfplane(d, n1, x_sign=-1), 1),
-                S.Surface(lambda d: _halfplane(d, n2, x_sign=1), 2)]
-    pts, _, ids = S.render(surfaces, CAM, sigma, np.random.default_rng(6))
-    valid = ids > 0
-    crease = int(np.flatnonzero((ids == 2).any(axis=0)).min())
-    right = np.where(valid, ids - 1, -1).astype(np.int32)
+    valid, crease, right, st, links, no_jump_h, no_jump_v = _roof(6)
     rows = np.flatnonzero(valid[:, crease - 20] & valid[:, crease + 2])
     r0 = int(rows[rows.size // 2])
     labels = right.copy()
     labels[r0:r0 + 2, crease - 25:crease - 10] = 2  # inside face 0
     labels[r0 + 10:r0 + 12, crease:crease + 15] = 3  # face 1, touching face 0 at the crease
     assert (labels == 2).sum() == 30 and (labels == 3).sum() == 30
-    X = pts.reshape(-1, 3)
-    st = _State(X=X, U=X / np.linalg.norm(X, axis=1, keepdims=True), S=np.where(valid.ravel(), sigma, np.nan),
-                hk=np.ones(X.shape[0], np.int64), params=SegmentationParams())
-    no_jump_h = np.zeros((CAM.height, CAM.width - 1), bool)
-    no_jump_v = np.zeros((CAM.height - 1, CAM.width), bool)
-    links = _neighbour_links(valid.shape, valid, no_jump_h, no_jump_v)
 
     out = _reassign(labels, st, links, no_jump_h, no_jump_v, rounds=16, margin=1.0)
     assert np.array_equal(out[labels == 2], np.zeros(30))
