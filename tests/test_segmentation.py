@@ -992,3 +992,24 @@ def test_peeling_keeps_the_staircase_border_of_a_thin_diagonal_strip():
     for r, c in ((5, 210), (5, 237), (34, 210), (34, 237), (20, 209)):
         assert out[r, c] == -1
     assert (out == 1).sum() == (labels == 1).sum() - 5
+
+
+@given(width=st.integers(4, 18), shift=st.integers(1, 5), rows=st.integers(30, 60), left=st.booleans())
+@settings(max_examples=60, deadline=None)
+def test_peeling_keeps_every_interior_row_of_a_diagonal_strip(width, shift, rows, left):
+    """Property: a strip ``width`` pixels wide moving ``shift`` columns per row (either way), of 200 pixels or
+    more, keeps all the pixels of its interior rows (only its first and last rows' overhangs go). Each pixel
+    needs a neighbour in the next or the previous row (``width >= 2 shift``): a thinner strip is a chain of
+    one-pixel lines, which the peel takes."""
+    from recognition.segmentation import _peel_weak
+
+    shift = min(shift, width // 2)
+    W = rows * shift + width + 4
+    labels = np.full((rows, W), -1, np.int32)
+    for r in range(rows):
+        c0 = 2 + (r * shift if not left else (rows - 1 - r) * shift)
+        labels[r, c0:c0 + width] = 0
+    if (labels == 0).sum() < 200:
+        return
+    out = _peel_weak(labels, 200, np.zeros((rows, W - 1), bool), np.zeros((rows - 1, W), bool))
+    assert (out[1:-1][labels[1:-1] == 0] == 0).all()
