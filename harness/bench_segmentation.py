@@ -5,8 +5,10 @@
 process, with the numerical libraries on one thread as in the runner's workers. Per group and overall it
 prints the median and p90 over frames of the best-of-repeats time per frame: process time (the machine may
 be shared) and wall time. Beside them: the correct detection rate at T = 0.8 over truth regions of 200 pixels
-or more, averaged over frames as in ``summary.json``, and a SHA-1 of the label images, so that a change made
-for speed can show it left every label alone. ``--json`` also writes all of it, per frame and per group.
+or more, averaged over frames, of the segmenter's own labels (``seg.``) and of the description's (``desc.``:
+after the classifier has merged touching patches that one primitive explains, untimed; the figure
+``summary.json`` reports), and a SHA-1 of the segmenter's label images, so that a change made for speed can
+show it left every label alone. ``--json`` also writes all of it, per frame and per group.
 """
 
 from __future__ import annotations
@@ -19,17 +21,25 @@ from pathlib import Path
 import numpy as np
 
 
-def _stats(cpu: list[float], wall: list[float], cd: list[float]) -> dict:
-    rates = [x for x in cd if x is not None]
+def _mean(values: list[float | None]) -> float | None:
+    rates = [x for x in values if x is not None]
+    return float(np.mean(rates)) if rates else None
+
+
+def _stats(cpu: list[float], wall: list[float], cd: list[float | None], cd_desc: list[float | None]) -> dict:
     return {"n": len(cpu), "cpu_median_s": float(np.median(cpu)), "cpu_p90_s": float(np.percentile(cpu, 90)),
             "wall_median_s": float(np.median(wall)), "wall_p90_s": float(np.percentile(wall, 90)),
-            "correct_detection_rate": float(np.mean(rates)) if rates else None}
+            "correct_detection_rate": _mean(cd), "correct_detection_rate_described": _mean(cd_desc)}
+
+
+def _rate(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.3f}"
 
 
 def _row(name: str, st: dict) -> str:
-    det = "n/a" if st["correct_detection_rate"] is None else f"{st['correct_detection_rate']:.3f}"
     return (f"{name:32s} {st['n']:4d}  {st['cpu_median_s']:.3f}  {st['cpu_p90_s']:.3f}  {st['wall_median_s']:.3f}  "
-            f"{st['wall_p90_s']:.3f}  {det}")
+            f"{st['wall_p90_s']:.3f}  {_rate(st['correct_detection_rate'])}  "
+            f"{_rate(st['correct_detection_rate_described'])}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -37,8 +47,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from evaluation.patches import segmentation_section
     from harness.suite import load_suite
-    from harness.trial import prepare_scene, sensor_for, trial_scan, trial_viewpoints
-    from recognition.describe import core_sigma
+    from harness.trial import method_params, prepare_scene, sensor_for, trial_scan, trial_viewpoints
+    from recognition.describe import core_sigma, describe
     from recognition.segmentation import segment
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -56,7 +66,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"no trial in groups {args.groups!r}; the suite's groups: "
                  f"{', '.join(sorted({t.group for t in suite.trials}))}")
     trials = trials[:args.limit]
-    rows: dict[str, tuple[list[float], list[float], list[float]]] = {}
+    core = method_params("core", suite.plan.methods.get("core", {}))
+    rows: dict[str, tuple[list, list, list, list]] = {}
     frames: list[dict] = []
     digest = hashlib.sha1()
     with threadpool_limits(limits=1):
@@ -77,21 +88,23 @@ def main(argv: list[str] | None = None) -> int:
                 wall = min(wall, time.perf_counter() - t0)
             digest.update(seg.labels.tobytes())
             cd = segmentation_section(seg.labels, truth, scan.valid)["correct_detection_rate"]
+            described = describe(scan, core, seg)
+            cd_desc = segmentation_section(described.labels, truth, scan.valid)["correct_detection_rate"]
             for key in (spec.group, "all"):
-                acc = rows.setdefault(key, ([], [], []))
-                acc[0].append(cpu)
-                acc[1].append(wall)
-                acc[2].append(cd)
+                acc = rows.setdefault(key, ([], [], [], []))
+                for a, v in zip(acc, (cpu, wall, cd, cd_desc), strict=True):
+                    a.append(v)
             h, w = scan.valid.shape
             frames.append({"trial_id": spec.trial_id, "group": spec.group, "width": w, "height": h, "cpu_s": cpu,
-                           "wall_s": wall, "correct_detection_rate": cd})
+                           "wall_s": wall, "correct_detection_rate": cd, "correct_detection_rate_described": cd_desc})
             print(f"{spec.trial_id}: {w}x{h} process {cpu:.3f} s, wall {wall:.3f} s, correct detection "
-                  f"{'n/a' if cd is None else f'{cd:.3f}'}", flush=True)
+                  f"{_rate(cd)} (described {_rate(cd_desc)})", flush=True)
     if not rows:
         print("no frame segmented")
         return 1
-    print(f"\nsegmentation per frame, best of {args.repeat} (s); correct detection at T = 0.8, mean over frames")
-    print(f"{'group':32s} {'n':>4s}  {'cpu50':>5s}  {'cpu90':>5s}  {'wal50':>5s}  {'wal90':>5s}  det.")
+    print(f"\nsegmentation per frame, best of {args.repeat} (s); correct detection at T = 0.8, mean over frames, "
+          "of the segmenter's labels and of the description's (as summary.json)")
+    print(f"{'group':32s} {'n':>4s}  {'cpu50':>5s}  {'cpu90':>5s}  {'wal50':>5s}  {'wal90':>5s}  seg.   desc.")
     groups = {key: _stats(*rows[key]) for key in sorted(rows, key=lambda k: (k == "all", k))}
     for key, st in groups.items():
         print(_row(key, st))

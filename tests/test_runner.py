@@ -239,7 +239,11 @@ def test_store_writes_atomically_and_cleans_temporaries(tmp_path):
 
 
 def test_segmentation_benchmark_times_and_scores_one_frame(tmp_path, capsys):
+    from threadpoolctl import threadpool_limits
+
     from harness.bench_segmentation import main as bench_segmentation
+    from harness.suite import load_suite
+    from harness.trial import prepare_scene, run_trial
 
     out_json = tmp_path / "seg.json"
     assert bench_segmentation(["--suite", "smoke", "--limit", "1", "--repeat", "2", "--json", str(out_json)]) == 0
@@ -253,6 +257,14 @@ def test_segmentation_benchmark_times_and_scores_one_frame(tmp_path, capsys):
     (frame,) = res["frames"]
     assert (frame["width"], frame["height"]) == (640, 480) and frame["cpu_s"] == res["groups"]["all"]["cpu_median_s"]
     assert f"{res['groups']['all']['correct_detection_rate']:.3f}" == rows[-1][6]
+    # the described column is the figure the runner records for the core on the same trial
+    suite = load_suite("smoke")
+    spec = suite.trials[0]
+    with threadpool_limits(limits=1):  # as in the runner's workers and the benchmark
+        record = run_trial(spec, suite.plan, prepare_scene(spec, None))
+    runner_rate = record["methods"]["core"]["segmentation"]["correct_detection_rate"]
+    assert frame["correct_detection_rate_described"] == pytest.approx(runner_rate)
+    assert f"{runner_rate:.3f}" == rows[-1][7]
 
 
 @pytest.mark.parametrize("argv, message", [(["--repeat", "0"], "--repeat must be >= 1"),
