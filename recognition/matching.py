@@ -939,7 +939,8 @@ class _Search:
             self.partial.sort(key=lambda x: -x[0])
             for _, pairs in self.partial[: max_hypotheses]:
                 hyps = self.pose(pairs, iterations=3)
-                full = pairs + [(i, -1) for i in range(len(self.items)) if i not in {k for k, _ in pairs}]
+                paired = {k for k, _ in pairs}
+                full = pairs + [(i, -1) for i in range(len(self.items)) if i not in paired]
                 # every pose the pairs admit: a pipe's axis fixes the rotation only up to its sign, and which
                 # of the two the solver lists first turns on the last bits of the fits
                 for h in hyps:

@@ -2274,14 +2274,15 @@ def _peel_weak(labels: np.ndarray, min_pixels: int, jump_h: np.ndarray, jump_v: 
     same = up.astype(np.int8) + down + left + right
     sizes = np.bincount(labels[labels >= 0], minlength=1)
     pairs, _ = _border_pairs(labels, jump_h, jump_v)
-    peel = sizes >= min_pixels
+    large = sizes >= min_pixels
+    peel = large.copy()
     peel[pairs[:, 0]] = True
     lab = np.maximum(labels, 0)
     weak = (labels >= 0) & peel[lab] & (same <= 2)
     row_end = (same == 2) & ((up & left & same_as(-1, -1)) | (up & right & same_as(-1, 1))
                              | (down & left & same_as(1, -1)) | (down & right & same_as(1, 1)))
     n_weak = np.bincount(labels[weak], minlength=sizes.size)
-    thin = ((sizes >= min_pixels) & (n_weak >= _THIN_PEEL_FRACTION * sizes)
+    thin = (large & (n_weak >= _THIN_PEEL_FRACTION * sizes)
             & (np.bincount(labels[weak & row_end], minlength=sizes.size) >= _STAIR_FRACTION * n_weak))
     return np.where(weak & ~(thin[lab] & row_end), -1, labels).astype(np.int32)
 
