@@ -75,6 +75,7 @@ The segmenter reads only the point image and the per-pixel sigma; never any grou
 from __future__ import annotations
 
 import heapq
+import time
 from dataclasses import dataclass, field, replace
 from enum import IntEnum
 
@@ -1887,7 +1888,22 @@ def _empty(shape: tuple[int, int], hk=None, Hc=None, Kc=None, sH=None, sK=None, 
     )
 
 
-def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | None = None) -> Segmentation:
+class _Laps:
+    """Process time of consecutive steps, added to ``into[name]`` in seconds (nothing when ``into`` is None)."""
+
+    def __init__(self, into: dict[str, float] | None):
+        self.into = into
+        self.t = time.process_time()
+
+    def __call__(self, name: str) -> None:
+        if self.into is not None:
+            t = time.process_time()
+            self.into[name] = self.into.get(name, 0.0) + t - self.t
+            self.t = t
+
+
+def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | None = None,
+            steps: dict[str, float] | None = None) -> Segmentation:
     """Segment an organised range image into H-K surface patches with plane / quadric fits.
 
     Parameters
@@ -1897,6 +1913,11 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
     sigma : ndarray of shape (H, W), metres
         Range-noise sigma along the ray per pixel (NaN where no return); floored at ``sigma_floor_m``.
     params : SegmentationParams, optional
+    steps : dict, optional
+        Receives the process time (s) of each step, added to what it holds under the step's name (``edges``,
+        ``curvature``, ``seeds``, ``growing``, ``merging`` on the segmentation grid, then ``full resolution``,
+        ``merging at full resolution``, ``splits``, ``reassignment``, ``peel``, ``final fits``): where a
+        frame's time goes, for ``python -m harness.bench_segmentation --steps``.
 
     Returns
     -------
@@ -1909,6 +1930,7 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
         For arrays of the wrong shape or negative sigma.
     """
     params = SegmentationParams() if params is None else params
+    lap = _Laps(steps)
     pts, sig = _check_inputs(points, sigma)
     shape = sig.shape
     # finite and > 0 where every coordinate is finite and one is not 0 (a range beyond 1e154 m, whose square
@@ -1935,8 +1957,9 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
         params = replace(params, split_seeds=d >= 2)
     st_full = _State(X=pts.reshape(-1, 3), U=rays.reshape(-1, 3), S=sig.ravel(), hk=np.zeros(0, np.int64),
                      params=params)
+    lap("edges")
     if d == 1:
-        out = _segment_grid(pts, sig, valid, rng, rays, jump_h, jump_v, params)
+        out = _segment_grid(pts, sig, valid, rng, rays, jump_h, jump_v, params, lap)
         if out is None:
             return _curvature_only(pts, sig, valid, jump_h, jump_v, params)
         labels, hk, cur, crease = out
@@ -1945,7 +1968,8 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
         sl = (slice(0, None, d), slice(0, None, d))
         pd, sd, vd, rd, ud = pts[sl], sig[sl], valid[sl], rng[sl], rays[sl]
         jhd, jvd = jump_pairs(rd, sd, ud, params.jump_k, params.jump_tan)
-        out = _segment_grid(pd, sd, vd, rd, ud, jhd, jvd, params.scaled(d))
+        lap("edges")
+        out = _segment_grid(pd, sd, vd, rd, ud, jhd, jvd, params.scaled(d), lap)
         if out is None:
             return _curvature_only(pts, sig, valid, jump_h, jump_v, params)
         labels_d, hk_d, cur_d, crease_d = out
@@ -1957,19 +1981,25 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
         st_full.hk = hk.ravel().astype(np.int64)
         links = _neighbour_links(shape, valid, jump_h, jump_v)  # (the full-resolution grid's, for both steps)
         labels = _refine_full(up(labels_d), valid, st_full, links, jump_h, jump_v, params, d)
+        lap("full resolution")
         labels = _merge(labels, st_full, jump_h, jump_v)  # (before the cuts below, which it would undo)
+        lap("merging at full resolution")
         split = _split_plane_pairs(labels, st_full, params, cut_faces=True)
         if split is not labels:  # a split-off side too small to stand alone goes to the face it belongs to
             labels = _absorb_fragments(split, st_full, jump_h, jump_v, params.min_region_pixels, params.absorb_k)
         if params.axis_split_pixels is not None:
             labels = _split_along_axis(labels, st_full, cur.normals.reshape(-1, 3), params)
+        lap("splits")
         if params.reassign_rounds:
             labels = _reassign(labels, st_full, links, jump_h, jump_v, params.reassign_rounds,
                                params.reassign_margin)
+        lap("reassignment")
     edges = _edge_image(shape, jump_h, jump_v)
     edges[crease] |= np.uint8(EdgeType.CREASE)
     labels = _peel_weak(labels, params.min_region_pixels, jump_h, jump_v)
+    lap("peel")
     labels, patches = _finalise(labels, st_full, params, declared.ravel())
+    lap("final fits")
     return Segmentation(labels, hk, cur.H, cur.K, cur.sigma_H, cur.sigma_K, cur.normals, edges, patches, scale)
 
 
@@ -2467,8 +2497,9 @@ def _refine_full(labels: np.ndarray, valid: np.ndarray, st: _State, links, jump_
     return labels
 
 
-def _segment_grid(pts, sig, valid, rng, rays, jump_h, jump_v, params: SegmentationParams):
-    """The H-K segmentation proper on one grid: (labels, hk, curvature, crease pixels), None without classes."""
+def _segment_grid(pts, sig, valid, rng, rays, jump_h, jump_v, params: SegmentationParams, lap: _Laps):
+    """The H-K segmentation proper on one grid: (labels, hk, curvature, crease pixels), None without classes.
+    ``lap`` times its steps."""
     shape = sig.shape
     cur = curvature_images(pts, sig, params, (jump_h, jump_v))
     hk = classify_hk(cur.H, cur.K, cur.sigma_H, cur.sigma_K, params.zero_k)
@@ -2482,6 +2513,7 @@ def _segment_grid(pts, sig, valid, rng, rays, jump_h, jump_v, params: Segmentati
     crease |= wide
     edges = _edge_image(shape, jump_h, jump_v)
     edges[crease] |= np.uint8(EdgeType.CREASE)
+    lap("curvature")
     if not (hk > 0).any():
         return None
 
@@ -2493,6 +2525,7 @@ def _segment_grid(pts, sig, valid, rng, rays, jump_h, jump_v, params: Segmentati
     seeds = _split_at_creases(seeds, wide, st, params)
     if params.split_seeds:
         seeds = _split_bad_seeds(seeds, st, params)
+    lap("seeds")
     labels = seeds.copy()
     P = None
     n_lab = int(seeds.max()) + 1
@@ -2524,11 +2557,13 @@ def _segment_grid(pts, sig, valid, rng, rays, jump_h, jump_v, params: Segmentati
             P = _fit_groups(_groups(labels), st, int(labels.max()) + 1)
             _grow(labels, P, st, links, params.max_grow_iterations, params.grow_k)
 
+    lap("growing")
     labels = _merge_enclosed(labels, valid, jump_h, jump_v, params.min_patch_pixels)
     labels = _merge(labels, st, jump_h, jump_v)
     labels = _merge_enclosed(labels, valid, jump_h, jump_v, params.min_patch_pixels)
     labels = _attach_isolated(labels, st, jump_h, jump_v)
     labels = _absorb_fragments(labels, st, jump_h, jump_v, params.min_region_pixels, params.absorb_k)
+    lap("merging")
     return labels, hk, cur, crease
 
 

@@ -246,7 +246,8 @@ def test_segmentation_benchmark_times_and_scores_one_frame(tmp_path, capsys):
     from harness.trial import prepare_scene, run_trial
 
     out_json = tmp_path / "seg.json"
-    assert bench_segmentation(["--suite", "smoke", "--limit", "1", "--repeat", "2", "--json", str(out_json)]) == 0
+    assert bench_segmentation(["--suite", "smoke", "--limit", "1", "--repeat", "2", "--steps",
+                               "--json", str(out_json)]) == 0
     out = capsys.readouterr().out
     rows = [line.split() for line in out.splitlines() if line.startswith(("all ", "mockup/", "factory_bay/"))]
     assert [r[0] for r in rows][-1] == "all" and all(r[1] == "1" for r in rows)
@@ -257,6 +258,11 @@ def test_segmentation_benchmark_times_and_scores_one_frame(tmp_path, capsys):
     (frame,) = res["frames"]
     assert (frame["width"], frame["height"]) == (640, 480) and frame["cpu_s"] == res["groups"]["all"]["cpu_median_s"]
     assert f"{res['groups']['all']['correct_detection_rate']:.3f}" == rows[-1][6]
+    # --steps: a VGA frame runs every step; they time the fastest repeat, within its total
+    assert list(frame["steps_s"]) == ["edges", "curvature", "seeds", "growing", "merging", "full resolution",
+                                      "merging at full resolution", "splits", "reassignment", "peel", "final fits"]
+    assert 0.5 * frame["cpu_s"] < sum(frame["steps_s"].values()) <= frame["cpu_s"]
+    assert "segmenter steps, process time per frame (ms)" in out
     # the described column is the figure the runner records for the core on the same trial
     suite = load_suite("smoke")
     spec = suite.trials[0]

@@ -252,6 +252,17 @@ def test_segmentation_is_deterministic():
     assert np.array_equal(a.labels, b.labels) and np.array_equal(a.hk_class, b.hk_class)
 
 
+def test_step_times_are_reported_and_change_nothing():
+    pts, sig, _ = S.render([S.sphere([0, 0, 2.0], 0.5, 1)], CAM, 5e-4, np.random.default_rng(7))
+    steps = {"edges": 1.0}  # times are added to what the dict holds
+    timed = segment(pts, sig, steps=steps)
+    plain = segment(pts, sig)
+    assert np.array_equal(timed.labels, plain.labels)
+    # this image is below the coarse grid's size: the grid's steps, then the last two
+    assert list(steps) == ["edges", "curvature", "seeds", "growing", "merging", "peel", "final fits"]
+    assert steps["edges"] >= 1.0 and all(t >= 0 for t in steps.values())
+
+
 # ----------------------------------------------------------------------------------- inputs and params
 
 
