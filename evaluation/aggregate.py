@@ -57,11 +57,25 @@ def aggregate_segmentation(trials: list[dict[str, Any]]) -> dict[str, Any]:
     causes = [t["missed_causes"] for t in trials if t.get("missed_causes")]
     if causes:
         out["missed_causes"] = {k: _mean([c.get(k) for c in causes]) for k in causes[0]}
+    by_size = [t["by_size"] for t in trials if t.get("by_size")]
+    if by_size:
+        out["by_size"] = [_pooled_size_class([b[i] for b in by_size]) for i in range(len(by_size[0]))]
     sweeps = [t["sweep"] for t in trials if t.get("sweep")]
     if sweeps:
         out["sweep"] = [{"tolerance": row["tolerance"],
                          **{k: _mean([s[i][k] for s in sweeps]) for k in HOOVER_RATES}}
                         for i, row in enumerate(sweeps[0])]
+    return out
+
+
+def _pooled_size_class(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """One size class of ``by_size`` pooled over images: its regions counted together (few images hold one of
+    a given size, so a mean over images would rest on a handful), and the rates of those counts."""
+    n = sum(r["n_truth"] for r in rows)
+    out: dict[str, Any] = {"min_pixels": rows[0]["min_pixels"], "max_pixels": rows[0]["max_pixels"], "n_truth": n}
+    for c, rate in (("correct", "correct_detection_rate"), ("over", "over_rate"), ("under", "under_rate"),
+                    ("missed", "missed_rate")):
+        out[rate] = sum(r[f"n_{c}"] for r in rows) / n if n else None
     return out
 
 

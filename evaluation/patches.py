@@ -7,13 +7,22 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.hoover import DEFAULT_SWEEP, connected_truth_regions, hoover_score, hoover_sweep, missed_causes
+from evaluation.hoover import (
+    DEFAULT_SWEEP,
+    HooverScore,
+    connected_truth_regions,
+    hoover_score,
+    hoover_sweep,
+    missed_causes,
+)
 from scenes.features import Cone, Cylinder, Sphere
 from scenes.model import SceneModel
 from sensors.range_image import FLAG_MIXED, FLAG_OUTLIER, ScanTruth
 
 TOLERANCE = 0.8
 MIN_TRUTH_PIXELS = 200
+SIZE_BINS = (200, 500, 1000, 5000)  # lower edges (pixels) of the truth-region size classes; the last is open
+TRUTH_CLASSES = ("correct", "over", "under", "missed")
 
 
 def truth_regions(truth: ScanTruth, valid: np.ndarray) -> np.ndarray:
@@ -28,7 +37,8 @@ def truth_regions(truth: ScanTruth, valid: np.ndarray) -> np.ndarray:
 
 
 def segmentation_section(labels: np.ndarray, truth: ScanTruth, valid: np.ndarray) -> dict[str, Any]:
-    """Hoover rates at T = 0.8 over truth regions of >= 200 pixels, plus the sweep over T in [0.51, 0.95]."""
+    """Hoover rates at T = 0.8 over truth regions of >= 200 pixels, the counts per region size (``by_size``),
+    plus the sweep over T in [0.51, 0.95]."""
     regions = truth_regions(truth, valid)
     score = hoover_score(labels, regions, TOLERANCE, min_truth_pixels=MIN_TRUTH_PIXELS)
     # a rate with nothing to count (no truth region of 200 px, or no machine region) is null, not NaN
@@ -40,12 +50,29 @@ def segmentation_section(labels: np.ndarray, truth: ScanTruth, valid: np.ndarray
     causes = missed_causes(labels, regions, score)
     out["missed_causes"] = {k: (v / score.n_truth if score.n_truth else None) for k, v in causes.items()}
     out["n_machine"] = int(score.n_machine)
+    out["by_size"] = counts_by_size(regions, score)
     out["sweep"] = [{"tolerance": float(t), **{k: _finite(getattr(s, k)) for k in
                                                 ("correct_detection_rate", "over_rate", "under_rate", "missed_rate",
                                                  "noise_rate")}}
                     for t, s in zip(DEFAULT_SWEEP, hoover_sweep(labels, regions, DEFAULT_SWEEP,
                                                                  min_truth_pixels=MIN_TRUTH_PIXELS), strict=True)]
     return out
+
+
+def counts_by_size(regions: np.ndarray, score: HooverScore) -> list[dict[str, Any]]:
+    """The scored truth regions counted per size class (``SIZE_BINS``) and Hoover category: where a segmenter
+    fails is mostly a matter of size (``max_pixels`` None: no upper bound; classes are ``[min, max)``)."""
+    sizes = np.bincount(regions[regions >= 0].ravel()) if (regions >= 0).any() else np.zeros(0, np.int64)
+    edges = [*SIZE_BINS, None]
+    rows = []
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        row: dict[str, Any] = {"min_pixels": lo, "max_pixels": hi, "n_truth": 0, **{f"n_{c}": 0 for c in TRUTH_CLASSES}}
+        for g, c in zip(score.truth_ids, score.truth_class, strict=True):
+            if c in TRUTH_CLASSES and lo <= sizes[g] and (hi is None or sizes[g] < hi):
+                row["n_truth"] += 1
+                row[f"n_{c}"] += 1
+        rows.append(row)
+    return rows
 
 
 def _finite(x: float) -> float | None:

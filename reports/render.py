@@ -300,6 +300,17 @@ def segmentation_section(run: RunData) -> Section:
                                     "rate): merged, the largest machine region on it also covers other surfaces; "
                                     "unlabelled, labelling its unlabelled pixels would have been enough; split, "
                                     "the rest"))
+    sizes = {name: _get(sec, "segmentation", "by_size") for name, sec in [("all", run.summary), *groups.items()]}
+    sizes = {k: v for k, v in sizes.items() if v}
+    if sizes:
+        bins = next(iter(sizes.values()))
+        head = tuple(f"{b['min_pixels']}+ px" if b["max_pixels"] is None else
+                     f"{b['min_pixels']}-{b['max_pixels'] - 1} px" for b in bins)
+        blocks.append(Table(("core method", *head),
+                            tuple((Cell(g), *[Cell(f"{fmt(b.get('correct_detection_rate'))} ({b['n_truth']})", "num")
+                                              for b in v]) for g, v in sizes.items()),
+                            caption="Correct detection by truth region size (regions of all images counted "
+                                    "together; in brackets, how many)"))
     return Section("segmentation", "Segmentation", blocks)
 
 

@@ -45,8 +45,12 @@ def _segmentation(cdr: float) -> dict:
              for t in SWEEP_T]
     missed = rates["missed_rate"]
     causes = {"unlabelled": 0.5 * missed, "split": 0.0, "merged": 0.5 * missed}
+    by_size = [{"min_pixels": 200, "max_pixels": 500, "n_truth": 4, "n_correct": 1, "n_over": 1, "n_under": 0,
+                "n_missed": 2},
+               {"min_pixels": 500, "max_pixels": None, "n_truth": 6, "n_correct": 5, "n_over": 0, "n_under": 1,
+                "n_missed": 0}]
     return {**rates, "tolerance": 0.8, "min_truth_pixels": 200, "n_truth": 10, "n_machine": 12, "sweep": sweep,
-            "missed_causes": causes}
+            "missed_causes": causes, "by_size": by_size}
 
 
 def _patches(n_right: int, n_wrong: int, paper: bool) -> list[dict]:
@@ -188,6 +192,13 @@ def test_present_pose_and_change_are_tabled_and_plotted(full_report):
     assert sum(causes.values()) == pytest.approx(summary["segmentation"]["missed_rate"])
     table = re.search(r"Missed truth regions by cause.*?</table>", html, re.S).group(0)
     assert f"{causes['merged']:.3f}" in table
+    # correct detection per region size, pooled over the images
+    small, large = summary["segmentation"]["by_size"]
+    assert small["correct_detection_rate"] == pytest.approx(0.25)
+    assert large["correct_detection_rate"] == pytest.approx(5 / 6)
+    table = re.search(r"Correct detection by truth region size.*?</table>", html, re.S).group(0)
+    assert "200-499 px" in table and "500+ px" in table
+    assert f"0.250 ({small['n_truth']})" in table and f"0.833 ({large['n_truth']})" in table
 
 
 def test_sweep_groups_get_a_metric_vs_value_plot(tmp_path):
