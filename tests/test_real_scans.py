@@ -133,6 +133,11 @@ def test_box_faces_are_plan(boxes):
 
 
 def test_mug_table_is_one_plan_patch(mug):
+    """A knife edge (measured 2026-11-27): the stereo matcher bends the table by a few millimetres, and which
+    1500 of its 101 k interior points the classifier's stride subsample takes decides between PLAN and a
+    20 m CYL. Leaving out one random interior pixel gave CYL in 1 of 15 draws (with 3000 points, in 5 of 16
+    point sets). A segmentation change that moves one pixel of the table's interior can fail this test: the
+    cause is the classifier's model of stereo errors, not the segmentation."""
     loaded, desc = mug
     pts = loaded.scan.points.reshape(-1, 3)
     with np.errstate(invalid="ignore"):
