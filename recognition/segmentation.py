@@ -877,20 +877,8 @@ def _groups(labels: np.ndarray) -> dict[int, np.ndarray]:
     flat = labels.ravel()
     if flat.size == 0 or flat.max() < 0:
         return {}
-    if -2**15 <= flat.min() and flat.max() < 2**15:
-        # numpy's stable sort of 16-bit integers is a radix sort; as uint16 the negative labels become >= 2**15
-        # and sort after every patch
-        key = flat.astype(np.uint16)
-        idx = np.argsort(key, kind="stable")[:np.count_nonzero(flat >= 0)]
-    else:
-        key = flat
-        idx = np.flatnonzero(flat >= 0)
-        idx = idx[np.argsort(flat[idx], kind="stable")]
-    lab = key[idx]
-    cuts = np.flatnonzero(np.diff(lab)) + 1
-    starts = np.concatenate([[0], cuts]).tolist()
-    ends = [*starts[1:], idx.size]
-    return {int(lab[s]): idx[s:e] for s, e in zip(starts, ends, strict=True)}
+    found = ndi.value_indices(np.maximum(flat, -1), ignore_value=-1)
+    return {int(k): found[k][0] for k in sorted(found)}
 
 
 def _subsample(idx: np.ndarray, n_max: int) -> np.ndarray:

@@ -844,7 +844,7 @@ def test_groups_list_each_labels_pixels_in_order(values, small):
     from recognition.segmentation import _groups
 
     labels = np.array(values, np.int32)
-    if small:  # the 16-bit radix-sort path
+    if small:  # few labels, many pixels each
         labels = np.where(labels >= 0, labels % 300, labels).astype(np.int32)
     got = _groups(labels.reshape(1, -1))
     want = {int(k): np.flatnonzero(labels == k) for k in np.unique(labels[labels >= 0])}
