@@ -62,17 +62,18 @@ def segmentation_section(labels: np.ndarray, truth: ScanTruth, valid: np.ndarray
 def counts_by_size(regions: np.ndarray, score: HooverScore) -> list[dict[str, Any]]:
     """The scored truth regions counted per size class (``SIZE_BINS``) and Hoover category: where a segmenter
     fails is mostly a matter of size (``max_pixels`` None: no upper bound; classes are ``[min, max)``)."""
-    sizes = np.bincount(regions[regions >= 0].ravel()) if (regions >= 0).any() else np.zeros(0, np.int64)
+    category = np.asarray(score.truth_class)
+    scored = np.isin(category, TRUTH_CLASSES)
+    ids = np.asarray(score.truth_ids, np.int64)[scored]
+    sizes = np.bincount(regions[regions >= 0].ravel(), minlength=int(ids.max()) + 1 if ids.size else 0)[ids]
+    size_class = np.searchsorted(SIZE_BINS, sizes, side="right") - 1  # -1: below the smallest class
+    category = category[scored]
+    counts = {c: np.bincount(size_class[(category == c) & (size_class >= 0)], minlength=len(SIZE_BINS))
+              for c in TRUTH_CLASSES}
     edges = [*SIZE_BINS, None]
-    rows = []
-    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
-        row: dict[str, Any] = {"min_pixels": lo, "max_pixels": hi, "n_truth": 0, **{f"n_{c}": 0 for c in TRUTH_CLASSES}}
-        for g, c in zip(score.truth_ids, score.truth_class, strict=True):
-            if c in TRUTH_CLASSES and lo <= sizes[g] and (hi is None or sizes[g] < hi):
-                row["n_truth"] += 1
-                row[f"n_{c}"] += 1
-        rows.append(row)
-    return rows
+    return [{"min_pixels": edges[i], "max_pixels": edges[i + 1],
+             "n_truth": int(sum(counts[c][i] for c in TRUTH_CLASSES)),
+             **{f"n_{c}": int(counts[c][i]) for c in TRUTH_CLASSES}} for i in range(len(SIZE_BINS))]
 
 
 def _finite(x: float) -> float | None:
