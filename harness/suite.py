@@ -58,9 +58,17 @@ class TrialSpec:
     min_view_pixels: int = 200
     min_view_surfaces: int = 4
     overrides: dict[str, float] = field(default_factory=dict)
+    family: str | None = None          # a generated scene: its family, config file and seed (``scene_file`` "")
+    family_config: str | None = None
+    scene_seed: int | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+    @property
+    def scene_key(self) -> tuple:
+        """What the a priori model is made from: a file, or (family, config, seed)."""
+        return (self.scene_file, self.family, self.family_config, self.scene_seed)
 
 
 @dataclass(frozen=True)
@@ -92,8 +100,9 @@ class Suite:
     def config_hash(self) -> str:
         """SHA-256 of the canonical JSON of the suite and of every file it refers to."""
         h = hashlib.sha256(json.dumps(self.raw, sort_keys=True, default=str).encode())
-        files = sorted({t.scene_file for t in self.trials} | {t.perturbation_file for t in self.trials if
-                                                              t.perturbation_file})
+        files = sorted({t.scene_file for t in self.trials if t.scene_file}
+                       | {t.family_config for t in self.trials if t.family_config}
+                       | {t.perturbation_file for t in self.trials if t.perturbation_file})
         for f in files:
             h.update(Path(f).read_bytes())
         return h.hexdigest()[:16]
@@ -179,8 +188,7 @@ def suite_from_dict(data: Any, source: str = "<suite>", base: Path = Path(".")) 
     if not groups:
         raise root.error("groups", "a suite needs at least one group")
     for g in groups:
-        scene_name = g.string("scene")
-        scene_file = _resolve_data(g, "scene", scene_name, base)
+        scenes = _group_scenes(g, base)
         pert = g.string("perturbation") if g.raw("perturbation", None) is not None else None
         pert_file = _resolve_data(g, "perturbation", pert, base) if pert is not None else None
         pseeds = _int_list(g, "perturbation_seeds", [0])
@@ -205,32 +213,81 @@ def suite_from_dict(data: Any, source: str = "<suite>", base: Path = Path(".")) 
             if not isinstance(vals, list) or not vals:
                 raise sweep.error(str(key), "expected a non-empty list of values")
             sweep_values.append((str(key), [_positive(sweep, str(key), v) for v in vals]))
-        label = g.string("label", f"{Path(scene_name).stem}/{Path(sensor).stem}")
+        label = g.string("label", f"{scenes[0].label}/{Path(sensor).stem}")
         min_pixels = g.integer("min_view_pixels", 200, min=1)
         min_surfaces = g.integer("min_view_surfaces", 4, min=0)
         g.check_unknown()
         n_combos = 1
         for _, vals in sweep_values:
             n_combos *= len(vals)
-        n_group = n_combos * len(pseeds) * n_views * len(nseeds)
+        n_group = n_combos * len(scenes) * len(pseeds) * n_views * len(nseeds)
         if len(trials) + n_group > MAX_TRIALS:  # checked before expanding: a huge product would exhaust memory
-            raise g.error(None, f"this group expands to {n_group} trials (sweep values x perturbation seeds x "
-                                f"viewpoints x noise seeds), more than the {MAX_TRIALS} a suite may hold in all")
+            raise g.error(None, f"this group expands to {n_group} trials (sweep values x scenes x perturbation "
+                                f"seeds x viewpoints x noise seeds), more than the {MAX_TRIALS} a suite may hold "
+                                "in all")
         combos = list(itertools.product(*[[(k, v) for v in vals] for k, vals in sweep_values])) or [()]
         for combo in combos:
             ov = {**overrides, **dict(combo)}
             group = label + "".join(f"[{k}={v:g}]" for k, v in combo)
-            for ps, vp, ns in itertools.product(pseeds, range(n_views), nseeds):
-                tid = f"{Path(scene_name).stem}-p{ps}-v{vp}-{Path(sensor).stem}-n{ns}" + \
+            for sc, ps, vp, ns in itertools.product(scenes, pseeds, range(n_views), nseeds):
+                tid = f"{sc.name}-p{ps}-v{vp}-{Path(sensor).stem}-n{ns}" + \
                       "".join(f"-{k}{v:g}" for k, v in combo)
-                trials.append(TrialSpec(tid, len(trials), group, Path(scene_name).stem, scene_file, pert_file, ps,
-                                        vp, sensor_ref, ns, seed, min_pixels, min_surfaces, ov))
+                trials.append(TrialSpec(tid, len(trials), group, sc.name, sc.file, pert_file, ps,
+                                        vp, sensor_ref, ns, seed, min_pixels, min_surfaces, ov,
+                                        sc.family, sc.family_config, sc.seed))
     ids = [t.trial_id for t in trials]
     if len(set(ids)) != len(ids):
         dup = sorted({i for i in ids if ids.count(i) > 1})[0]
         raise root.error("groups", f"two groups produce the same trial id {dup!r}: give them distinct labels")
     root.check_unknown()
     return Suite(name, source, seed, timeout_s, methods, tuple(trials), data, tuple(oracles))
+
+
+@dataclass(frozen=True)
+class _GroupScene:
+    """One a priori scene of a group: a file, or a member of a generated family."""
+
+    name: str
+    label: str
+    file: str = ""
+    family: str | None = None
+    family_config: str | None = None
+    seed: int | None = None
+
+
+def _group_scenes(g: Fields, base: Path) -> list[_GroupScene]:
+    """The scenes of a group: ``scene`` (one shipped name or file) or ``family`` with ``scene_seeds``."""
+    from scenes.families import FAMILIES, family_config_path, member_name
+
+    if g.has("scene") == g.has("family"):
+        raise g.error("scene", "give either scene (a shipped name or a file) or family (generated scenes)")
+    if g.has("scene"):
+        name = g.string("scene")
+        return [_GroupScene(Path(name).stem, Path(name).stem, _resolve_data(g, "scene", name, base))]
+    family = g.string("family", choices=tuple(FAMILIES))
+    config = None
+    if g.has("family_config"):
+        value = g.string("family_config")
+        local = base / value
+        try:
+            config = str(family_config_path(family, str(local) if _is_file(local) else value))
+        except ValueError as exc:
+            raise g.error("family_config", str(exc)) from None
+    seeds = _seed_list(g, "scene_seeds")
+    return [_GroupScene(member_name(family, s), family, "", family, config, s) for s in seeds]
+
+
+def _seed_list(f: Fields, key: str) -> list[int]:
+    """A list of distinct seeds, or ``{start: S, count: N}`` for S .. S + N - 1."""
+    raw = f.raw(key, None)
+    if raw is None:
+        raise f.error(key, "a family needs its scene seeds: a list, or {start: S, count: N}")
+    if isinstance(raw, dict):
+        sub = f.sub(key)
+        start, count = sub.integer("start", min=0), sub.integer("count", min=1, max=MAX_TRIALS)
+        sub.check_unknown()
+        return list(range(start, start + count))
+    return _int_list(f, key, [])
 
 
 def _positive(f: Fields, key: str, v: Any) -> float:

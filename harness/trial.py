@@ -7,6 +7,7 @@ and the :class:`sensors.range_image.ScanTruth` (DESIGN 10.1).
 
 from __future__ import annotations
 
+import copy
 import threading
 import time
 import zlib
@@ -17,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.change import change_section
+from evaluation.change import change_section, observable_features
 from evaluation.oracles import truth_classification, truth_pairings, truth_segmentation
 from evaluation.patches import classification_section, segmentation_section
 from evaluation.pose import changed_features, constrains_pose, pose_section
@@ -27,6 +28,7 @@ from recognition.describe import DescribeParams, core_sigma, describe
 from recognition.localise import LocaliseParams, localise
 from recognition.peers import PEERS
 from recognition.predict import ModelPredictor
+from scenes.families import family_member
 from scenes.model import SceneModel
 from scenes.perturb import ChangeTruth, PerturbationSpec, perturb
 from sensors.config import SensorConfig, load_sensor
@@ -69,7 +71,7 @@ _SCENES_KEPT = 8
 def prepare_scene(spec: TrialSpec, cache_dir: Path | None) -> PreparedScene:
     """Perturb the a priori scene and compile it; cached in-process (the runner prepares it before forking the
     trial's process, so trials of one scene share the work) and, as files, in ``cache_dir``."""
-    key = (spec.scene_file, spec.perturbation_file, spec.perturbation_seed)
+    key = (spec.scene_key, spec.perturbation_file, spec.perturbation_seed)
     with _SCENES_LOCK:
         if key in _SCENES:
             _SCENES.move_to_end(key)
@@ -81,9 +83,28 @@ def prepare_scene(spec: TrialSpec, cache_dir: Path | None) -> PreparedScene:
         return prepared
 
 
+def apriori_model(spec: TrialSpec, cache_dir: Path | None = None) -> SceneModel:
+    """The trial's a priori model: its scene file, or its family member generated from its seed (once per
+    run: saved under ``cache_dir/scenes/`` and read back by later processes)."""
+    if spec.family is None:
+        return SceneModel.load(spec.scene_file)
+    path = None
+    if cache_dir is not None:
+        tag = zlib.crc32(repr(spec.scene_key).encode())
+        path = cache_dir / "scenes" / f"{spec.scene}-{tag:08x}.yaml"
+        if path.exists():
+            return SceneModel.load(path)
+    text = family_member(spec.family, spec.scene_seed, spec.family_config).to_yaml()
+    if path is not None:
+        from harness.store import write_text_atomic
+
+        write_text_atomic(path, text)
+    return SceneModel.from_yaml(text)  # read back as later processes will: the same model in every process
+
+
 def _prepare(spec: TrialSpec, cache_dir: Path | None) -> PreparedScene:
-    key = (spec.scene_file, spec.perturbation_file, spec.perturbation_seed)
-    apriori = SceneModel.load(spec.scene_file)
+    key = (spec.scene_key, spec.perturbation_file, spec.perturbation_seed)
+    apriori = apriori_model(spec, cache_dir)
     tag = f"{spec.scene}-{zlib.crc32(repr(key).encode()):08x}"
     actual_path = cache_dir / tag / "actual.yaml" if cache_dir else None
     truth_path = cache_dir / tag / "truth.json" if cache_dir else None
@@ -212,6 +233,9 @@ class TrialContext:
         self.scan, self.truth, self.prepared = scan, truth, prepared
         self.median_range = float(np.nanmedian(truth.true_range)) if np.isfinite(truth.true_range).any() else None
         self._apriori_at_truth = None
+        self._observable: dict[str, str] | None = None
+        self.poses: dict[int, tuple[Any, tuple]] = {}  # id(description) -> (description, estimate_pose output)
+        self._segmentation_sections: dict[int, tuple[np.ndarray, dict[str, Any]]] = {}
         self.object_of = {f.id: o.id for m in (prepared.apriori, prepared.actual) for o in m.objects
                           for f in o.features}
         self.constrained = bool(constrains_pose(truth, prepared.actual,
@@ -223,6 +247,21 @@ class TrialContext:
         if self._apriori_at_truth is None:
             self._apriori_at_truth = self.prepared.predictor.predict(self.scan.sensor, self.truth.T_world_sensor)
         return self._apriori_at_truth
+
+    @property
+    def observable(self) -> dict[str, str]:
+        """Truth label of every feature observable in this trial (the same for every method)."""
+        if self._observable is None:
+            self._observable = observable_features(self.truth, self.prepared.change_truth, self.apriori_at_truth)
+        return self._observable
+
+    def segmentation_section(self, labels: np.ndarray) -> dict[str, Any]:
+        """The Hoover scores of ``labels``, computed once per label image (methods that share the core's
+        segmentation share its scores)."""
+        key = id(labels)
+        if key not in self._segmentation_sections or self._segmentation_sections[key][0] is not labels:
+            self._segmentation_sections[key] = (labels, segmentation_section(labels, self.truth, self.scan.valid))
+        return copy.deepcopy(self._segmentation_sections[key][1])
 
 
 def run_pipeline(ctx: TrialContext, params: DescribeParams, segmentation=None, oracle: str | None = None,
@@ -252,14 +291,24 @@ def run_pipeline(ctx: TrialContext, params: DescribeParams, segmentation=None, o
         if oracle == "classification":
             desc = truth_classification(desc, truth)
     record: dict[str, Any] = {
-        "segmentation": segmentation_section(desc.labels, truth, scan.valid),
+        "segmentation": ctx.segmentation_section(desc.labels),
         "classification": classification_section(desc, truth, prepared.actual),
         "pose": None,
         "change": None,
         "timing_s": timing,
     }
-    T_est, cov, predicted, pose_record, pose_timing = estimate_pose(
-        ctx, desc, oracle, peer if peer is not None and peer[0].replaces == "pose" else None)
+    pose_peer = peer if peer is not None and peer[0].replaces == "pose" else None
+    if oracle is None and pose_peer is None:  # the core's localisation of this description: once per trial
+        key = id(desc)
+        if key in ctx.poses and ctx.poses[key][0] is desc:
+            T_est, cov, predicted, pose_record, _ = ctx.poses[key][1]
+            pose_record, pose_timing = copy.deepcopy(pose_record), {}  # its time is the first run's
+        else:
+            found = estimate_pose(ctx, desc, None)
+            ctx.poses[key] = (desc, found)
+            T_est, cov, predicted, pose_record, pose_timing = found
+    else:
+        T_est, cov, predicted, pose_record, pose_timing = estimate_pose(ctx, desc, oracle, pose_peer)
     record["pose"] = pose_record
     timing.update(pose_timing)
     if T_est is not None:
@@ -271,7 +320,8 @@ def run_pipeline(ctx: TrialContext, params: DescribeParams, segmentation=None, o
             result = detect_changes(desc, scan, prepared.apriori, T_est, cov, predicted=predicted,
                                     predictor=prepared.predictor)
         timing["change"] = time.perf_counter() - t0 - result.timing_s.get("predict", 0.0)
-        record["change"] = change_section(result, truth, prepared.change_truth, ctx.apriori_at_truth, ctx.object_of)
+        record["change"] = change_section(result, truth, prepared.change_truth, ctx.apriori_at_truth, ctx.object_of,
+                                          observable=ctx.observable)
     return record, desc
 
 

@@ -183,6 +183,18 @@ class NoiseModel:
             changes["outlier_rate"] = 0.0
         return replace(self, **changes)
 
+    def scaled(self, k: float) -> NoiseModel:
+        """A copy whose range sigma is ``k`` times this one's at every range and incidence (the terms of
+        :meth:`sigma` scaled; quantisation, grazing, footprint, dropout and outliers unchanged)."""
+        if not (math.isfinite(k) and k > 0):
+            raise ValueError(f"noise scale must be a finite number > 0, got {k}")
+        return replace(self, s0_m=self.s0_m * k, s2_per_m=self.s2_per_m * k,
+                       incidence_coeff_m=self.incidence_coeff_m * k)
+
+    def with_footprint(self, rays: int) -> NoiseModel:
+        """A copy casting ``rays`` sub-rays per pixel (1 = off)."""
+        return replace(self, footprint_rays=rays)
+
     def off(self) -> NoiseModel:
         """The same parameters with the master switch off (exact ranges)."""
         return replace(self, enabled=False)

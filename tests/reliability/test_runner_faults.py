@@ -25,6 +25,7 @@ from pathlib import Path
 import pytest
 
 from harness.cli import main
+from harness.commands.bench import EXIT_TRIALS_FAILED
 from harness.run import RunOptions, run_suite
 from harness.suite import load_suite
 
@@ -106,12 +107,13 @@ def check_consistent(out: Path) -> dict[str, bytes]:
 
 
 def resume_and_check(suite_path: Path, out: Path, finished: dict[str, bytes], n_trials: int) -> dict:
-    assert main(["bench", "--suite", str(suite_path), "--out", str(out), "--resume", "--workers", "1",
-                 "--no-report", "--progress", "log"]) == 0
+    code = main(["bench", "--suite", str(suite_path), "--out", str(out), "--resume", "--workers", "1",
+                 "--no-report", "--progress", "log"])
     check_consistent(out)
     for name, data in finished.items():
         assert (out / "trials" / name).read_bytes() == data, f"{name} changed on resume"
     summary = json.loads((out / "summary.json").read_bytes())
+    assert code == (EXIT_TRIALS_FAILED if summary["n_failed"] else 0)  # a failure kept on resume is still one
     assert summary["complete"] and summary["n_trials"] == n_trials
     return summary
 
