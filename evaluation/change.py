@@ -64,10 +64,14 @@ def _measured_pixels_by_feature(truth: ScanTruth) -> dict[str, np.ndarray]:
 
 def change_section(result: ChangeResult, truth: ScanTruth, change_truth: ChangeTruth,
                    apriori_at_truth: Prediction, object_of: dict[str, str],
-                   min_pixels: int = MIN_PIXELS) -> dict[str, Any]:
+                   min_pixels: int = MIN_PIXELS, observable: dict[str, str] | None = None) -> dict[str, Any]:
     """Per-trial change record: (truth, predicted) pairs for observable features and objects, false ``new``
-    patches, and the displacement error of correctly labelled moved features."""
-    observable = observable_features(truth, change_truth, apriori_at_truth, min_pixels)
+    patches, and the displacement error of correctly labelled moved features.
+
+    ``observable``: :func:`observable_features` of this truth, when the caller has it already (it depends on
+    the truth only, so every method of a trial shares it)."""
+    if observable is None:
+        observable = observable_features(truth, change_truth, apriori_at_truth, min_pixels)
     actual_pix = _measured_pixels_by_feature(truth)
     label_map = result.label_map.reshape(-1)
     new_idx = LABELS.index("new")

@@ -209,12 +209,18 @@ def hoover_score(
     >>> hoover_score(truth, truth).correct_detection_rate
     1.0
     """
+    return score_table(overlap_table(machine_labels, truth_labels), tolerance, min_truth_pixels)
+
+
+def score_table(table: tuple[np.ndarray, ...], tolerance: float = 0.8, min_truth_pixels: int = 0) -> HooverScore:
+    """:func:`hoover_score` from the overlap table of :func:`overlap_table` (which does not depend on the
+    tolerance: a sweep computes it once)."""
     if not 0.5 < float(tolerance) <= 1.0:
         raise ValueError(f"tolerance must be in (0.5, 1], got {tolerance!r}")
     if min_truth_pixels < 0:
         raise ValueError(f"min_truth_pixels must be >= 0, got {min_truth_pixels!r}")
     T = float(tolerance)
-    machine_ids, truth_ids, msize, gsize, pairs = overlap_table(machine_labels, truth_labels)
+    machine_ids, truth_ids, msize, gsize, pairs = table
     nM, nG = machine_ids.size, truth_ids.size
     pm, pg, po = pairs[:, 0], pairs[:, 1], pairs[:, 2].astype(np.float64)
     # candidates: (score, kind priority, truth indices, machine indices, kind)
@@ -302,7 +308,8 @@ MISSED_CAUSES: tuple[str, ...] = ("unlabelled", "split", "merged")
 """Why a truth region was missed (:func:`missed_causes`)."""
 
 
-def missed_causes(machine_labels: np.ndarray, truth_labels: np.ndarray, score: HooverScore) -> dict[str, int]:
+def missed_causes(machine_labels: np.ndarray, truth_labels: np.ndarray, score: HooverScore,
+                  table: tuple[np.ndarray, ...] | None = None) -> dict[str, int]:
     """Count the scored truth regions that ``score`` classifies as missed, by cause.
 
     The cause comes from the machine region ``m`` with the largest overlap ``O`` with the missed region
@@ -314,7 +321,8 @@ def missed_causes(machine_labels: np.ndarray, truth_labels: np.ndarray, score: H
       them would have been enough;
     - **split**: otherwise. ``g`` is spread over several machine regions that are not all inside it.
 
-    A region that no machine region touches is unlabelled.
+    A region that no machine region touches is unlabelled. ``table``: the images' :func:`overlap_table`, when
+    the caller has it already.
 
     Examples
     --------
@@ -329,7 +337,7 @@ def missed_causes(machine_labels: np.ndarray, truth_labels: np.ndarray, score: H
     if not missed:
         return out
     m, g = _check_labels(machine_labels, truth_labels)
-    machine_ids, truth_ids, msize, gsize, pairs = overlap_table(m, g)
+    machine_ids, truth_ids, msize, gsize, pairs = table if table is not None else overlap_table(m, g)
     unlabelled = np.bincount(np.searchsorted(truth_ids, g[(g >= 0) & (m < 0)]), minlength=truth_ids.size)
     T = score.tolerance
     for gid in missed:
@@ -356,7 +364,8 @@ def hoover_sweep(
     min_truth_pixels: int = 0,
 ) -> list[HooverScore]:
     """:func:`hoover_score` at each tolerance (default 12 values from 0.51 to 0.95)."""
-    return [hoover_score(machine_labels, truth_labels, float(t), min_truth_pixels) for t in tolerances]
+    table = overlap_table(machine_labels, truth_labels)
+    return [score_table(table, float(t), min_truth_pixels) for t in tolerances]
 
 
 def connected_truth_regions(surface_id_image: np.ndarray, connectivity: int = 4) -> np.ndarray:

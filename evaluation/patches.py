@@ -11,9 +11,9 @@ from evaluation.hoover import (
     DEFAULT_SWEEP,
     HooverScore,
     connected_truth_regions,
-    hoover_score,
-    hoover_sweep,
     missed_causes,
+    overlap_table,
+    score_table,
 )
 from scenes.features import Cone, Cylinder, Sphere
 from scenes.model import SceneModel
@@ -40,22 +40,22 @@ def segmentation_section(labels: np.ndarray, truth: ScanTruth, valid: np.ndarray
     """Hoover rates at T = 0.8 over truth regions of >= 200 pixels, the counts per region size (``by_size``),
     plus the sweep over T in [0.51, 0.95]."""
     regions = truth_regions(truth, valid)
-    score = hoover_score(labels, regions, TOLERANCE, min_truth_pixels=MIN_TRUTH_PIXELS)
+    table = overlap_table(labels, regions)  # independent of the tolerance: computed once for the sweep too
+    score = score_table(table, TOLERANCE, min_truth_pixels=MIN_TRUTH_PIXELS)
     # a rate with nothing to count (no truth region of 200 px, or no machine region) is null, not NaN
     out = {k: (None if isinstance(v, float | np.floating) and not np.isfinite(v) else
                float(v) if isinstance(v, float | np.floating) else v) for k, v in score.as_dict().items()}
     out["min_truth_pixels"] = MIN_TRUTH_PIXELS
     out["n_truth"] = int(score.n_truth)
     # the missed rate split by cause (they sum to it)
-    causes = missed_causes(labels, regions, score)
+    causes = missed_causes(labels, regions, score, table)
     out["missed_causes"] = {k: (v / score.n_truth if score.n_truth else None) for k, v in causes.items()}
     out["n_machine"] = int(score.n_machine)
     out["by_size"] = counts_by_size(regions, score)
     out["sweep"] = [{"tolerance": float(t), **{k: _finite(getattr(s, k)) for k in
                                                 ("correct_detection_rate", "over_rate", "under_rate", "missed_rate",
                                                  "noise_rate")}}
-                    for t, s in zip(DEFAULT_SWEEP, hoover_sweep(labels, regions, DEFAULT_SWEEP,
-                                                                 min_truth_pixels=MIN_TRUTH_PIXELS), strict=True)]
+                    for t, s in ((t, score_table(table, float(t), MIN_TRUTH_PIXELS)) for t in DEFAULT_SWEEP)]
     return out
 
 
