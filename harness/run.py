@@ -175,8 +175,13 @@ def _execute(todo, suite, options, workers, timeout, cache_dir, artifacts):
             client = Client(options.scheduler, timeout="30s")
             cluster = None
         else:
-            cluster = LocalCluster(n_workers=options.dask_local, threads_per_worker=1, processes=True,
-                                   dashboard_address=None, silence_logs=40)
+            import dask
+
+            # the worker's statistical profiler samples every thread's stack each 10 ms: a few percent of a
+            # core per worker for a picture nobody looks at here (no dashboard)
+            with dask.config.set({"distributed.worker.profile.enabled": False}):
+                cluster = LocalCluster(n_workers=options.dask_local, threads_per_worker=1, processes=True,
+                                       dashboard_address=None, silence_logs=40)
             client = Client(cluster)
         try:
             yield from run_dask(todo, suite.plan, timeout, client, cache_dir, artifacts)

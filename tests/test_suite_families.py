@@ -167,3 +167,14 @@ def test_a_prepared_family_scene_is_perturbed(tmp_path):
     prepared = prepare_scene(spec, tmp_path)
     assert prepared.apriori.name == "factory-s1000"
     assert prepared.actual.to_yaml() != prepared.apriori.to_yaml()
+
+
+def test_dask_batches_keep_the_trials_of_one_scene_together_in_order():
+    from harness.execute import scene_batches
+
+    suite = _suite([{**FACTORY, "viewpoints": 3}])  # 3 scenes x 2 perturbation seeds x 3 viewpoints
+    batches = scene_batches(list(suite.trials), size=2)
+    assert [len(b) for b in batches] == [2, 1] * 6
+    assert [t.trial_id for b in batches for t in b] == [t.trial_id for t in suite.trials]
+    for b in batches:
+        assert len({(t.scene, t.perturbation_seed) for t in b}) == 1
