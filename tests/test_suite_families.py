@@ -178,3 +178,10 @@ def test_dask_batches_keep_the_trials_of_one_scene_together_in_order():
     assert [t.trial_id for b in batches for t in b] == [t.trial_id for t in suite.trials]
     for b in batches:
         assert len({(t.scene, t.perturbation_seed) for t in b}) == 1
+
+
+def test_scene_generate_writes_the_member_a_suite_uses(tmp_path):
+    out = tmp_path / "m.yaml"
+    assert main(["scene", "generate", "--family", "factory", "--seed", "1000", "--out", str(out)]) == 0
+    assert out.read_text() == family_member("factory", 1000).to_yaml()
+    assert main(["scene", "generate", "--family", "factory", "--mockup", "--out", str(out)]) == 2

@@ -7,6 +7,7 @@ import json
 import time
 from pathlib import Path
 
+from scenes.families import FAMILIES, family_member
 from scenes.generator import GeneratorConfig, generate_factory, mockup_model
 from scenes.mjcf import export_mjcf
 from scenes.model import SceneModel
@@ -22,6 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--seed", type=int, default=0, help="generator seed (default 0)")
     g.add_argument("--config", type=Path, help="generator config YAML (default: built-in factory bay)")
     g.add_argument("--mockup", action="store_true", help="write the paper-like 1:10 mock-up instead")
+    g.add_argument("--family", choices=tuple(FAMILIES),
+                   help="write member --seed of a scene family, as a suite's `family:` group makes it (with "
+                        "--config: that family config; default: the family's shipped one)")
     g.add_argument("--name", help="scene name (default from the seed)")
     g.add_argument("--out", type=Path, required=True, help="output scene YAML")
     p = sub.add_parser("perturb", help="draw the actual scene and its change truth from an a priori model")
@@ -42,8 +46,14 @@ def run(args: argparse.Namespace) -> int:
 
 def _generate(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
+    if args.mockup and args.family:
+        raise ValueError("--mockup writes the one fixed mock-up; --family mockup draws a member of the family")
     if args.mockup:
         model = mockup_model()
+    elif args.family:
+        model = family_member(args.family, args.seed, args.config)
+        if args.name:
+            model = SceneModel(args.name, model.objects)
     else:
         cfg = GeneratorConfig.load(args.config) if args.config else GeneratorConfig()
         model = generate_factory(cfg, args.seed, args.name)
