@@ -7,6 +7,23 @@ Per-trial sections (written by the runner into ``trials/<id>.json``):
 * classification: ``patches``, a list of ``{truth, label, probabilities: {class: p}, n_pixels}``;
 * pose: ``{rotation_error_deg, translation_error_mm, success, constrained, initial: {...}}``;
 * change: ``{features: [{truth, predicted}], objects: [{truth, predicted}], displacement_error_mm: [...]}``.
+
+Intervals (DESIGN 11.3). Given a :class:`evaluation.intervals.Resampling` (the scene of each trial and the
+scope's bootstrap weights), every headline rate and median gets its 95 % cluster-bootstrap interval beside it,
+in the same dict, under the value's key with ``_ci95`` appended: ``[lo, hi]``, or null when fewer than two
+scenes contribute (see :mod:`evaluation.intervals`). The figures with an interval:
+
+* segmentation: the five Hoover rates (``correct_detection_rate_ci95`` ... ``noise_rate_ci95``);
+* classification: ``accuracy_ci95``, ``brier_ci95``, ``ece_ci95`` and ``per_class.<C>.precision_ci95`` /
+  ``recall_ci95``;
+* pose: ``success_rate_ci95``, ``success_rate_constrained_ci95``, ``rotation_error_deg.median_ci95``,
+  ``translation_error_mm.median_ci95``, ``add_mm.median_ci95``, and in ``initial`` its success rate and
+  medians;
+* change (features, and ``objects``): ``macro_f1_ci95``, ``per_label.<label>.{precision,recall,f1}_ci95``,
+  and ``displacement_error_mm.median_ci95``.
+
+A statistics dict that is null (no finite value) has no interval either. p90, max, the sweep, the size
+classes and the missed causes carry none. Without a resampling the sections are as before.
 """
 
 from __future__ import annotations
@@ -25,10 +42,14 @@ from evaluation.classification import (
     per_class,
     reliability_table,
 )
+from evaluation.intervals import CalibrationGap, MeanOfRatios, Ratio, Resampling
 
 HOOVER_RATES = ("correct_detection_rate", "over_rate", "under_rate", "missed_rate", "noise_rate")
 CHANGE_LABELS = ("moved", "missing", "new", "altered", "unchanged")
 MIN_PATCH_PIXELS = 200
+CI_SUFFIX = "_ci95"
+MACRO_LABELS = ("moved", "missing", "new", "altered")
+RELIABILITY_BINS = 10
 
 
 def stats(values: Sequence[float]) -> dict[str, float] | None:
@@ -46,10 +67,31 @@ def _mean(values: list[float | None]) -> float | None:
     return float(np.mean(v)) if v else None
 
 
-def aggregate_segmentation(trials: list[dict[str, Any]]) -> dict[str, Any]:
+def beside(section: dict[str, Any], intervals: dict[str, list[float] | None]) -> dict[str, Any]:
+    """``section`` with each interval inserted right after its value, as ``<key>_ci95``."""
+    out: dict[str, Any] = {}
+    for k, v in section.items():
+        out[k] = v
+        if k in intervals:
+            out[k + CI_SUFFIX] = intervals[k]
+    return out
+
+
+def aggregate_segmentation(trials: list[dict[str, Any]], resampling: Resampling | None = None) -> dict[str, Any]:
     """Hoover rates averaged over images (DESIGN 7), and the tolerance sweep averaged likewise; an image
-    with nothing to count for a rate (null) does not take part in that rate's mean."""
+    with nothing to count for a rate (null) does not take part in that rate's mean.
+
+    With ``resampling`` (one item per trial) each rate gets its interval: a mean over images is the ratio
+    (sum of the images' rates) / (images with that rate), recomputed on every resample of scenes.
+    """
     out: dict[str, Any] = {k: _mean([t[k] for t in trials]) for k in HOOVER_RATES}
+    if resampling is not None:
+        rs = resampling.check(len(trials))
+        cis = {}
+        for k in HOOVER_RATES:
+            v = [t[k] for t in trials]
+            cis[k] = rs.ratio([0.0 if x is None else float(x) for x in v], [x is not None for x in v])
+        out = beside(out, cis)
     out["tolerance"] = trials[0]["tolerance"]
     out["min_truth_pixels"] = trials[0].get("min_truth_pixels", 0)
     out["n_images"] = len(trials)
@@ -79,16 +121,19 @@ def _pooled_size_class(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def aggregate_classification(trials: list[dict[str, Any]], min_pixels: int = MIN_PATCH_PIXELS) -> dict[str, Any]:
-    """Pooled over the patches of ``min_pixels`` pixels or more of every trial."""
-    patches = [p for t in trials for p in t["patches"] if p["n_pixels"] >= min_pixels]
+def aggregate_classification(trials: list[dict[str, Any]], min_pixels: int = MIN_PATCH_PIXELS,
+                             resampling: Resampling | None = None) -> dict[str, Any]:
+    """Pooled over the patches of ``min_pixels`` pixels or more of every trial; with ``resampling`` (one item
+    per trial) the intervals of accuracy, Brier score, ECE and per-class precision and recall."""
+    kept = [[p for p in t["patches"] if p["n_pixels"] >= min_pixels] for t in trials]
+    patches = [p for ps in kept for p in ps]
     truth = [p["truth"] for p in patches]
     pred = [p["label"] for p in patches]
     probs = np.array([[p["probabilities"].get(c, 0.0) for c in CLASSES] for p in patches]).reshape(-1, len(CLASSES))
     conf = confusion_matrix(truth, pred)
     winner = [p["probabilities"].get(p["label"], 0.0) for p in patches]
-    table = reliability_table(truth, pred, winner)
-    return {
+    table = reliability_table(truth, pred, winner, RELIABILITY_BINS)
+    out = {
         "accuracy": accuracy(truth, pred),
         "n_patches": len(patches),
         "min_patch_pixels": min_pixels,
@@ -100,6 +145,39 @@ def aggregate_classification(trials: list[dict[str, Any]], min_pixels: int = MIN
         "n_patches_all": int(sum(len(t["patches"]) for t in trials)),
         "radius": {c: radius_errors(patches, c) for c in ("CYL", "SPH")},
     }
+    if resampling is None:
+        return out
+    rs = resampling.check(len(trials)).expand([len(ps) for ps in kept])
+    return _classification_intervals(out, rs, truth, pred, probs, np.asarray(winner, dtype=np.float64))
+
+
+def _classification_intervals(out: dict[str, Any], rs: Resampling, truth: list[str], pred: list[str],
+                              probs: np.ndarray, winner: np.ndarray) -> dict[str, Any]:
+    """Intervals of the classification figures from per-patch terms summed per scene (``rs``: one item per
+    patch). Brier: the per-patch score summed over the scene; ECE: per confidence bin as
+    :func:`evaluation.classification.reliability_table` bins it, the count, summed confidence and correct
+    labels."""
+    n = len(truth)
+    ti = np.array([CLASSES.index(t) for t in truth], dtype=np.int64)
+    pi = np.array([CLASSES.index(p) for p in pred], dtype=np.int64)
+    onehot_t = np.zeros((n, len(CLASSES)))
+    onehot_t[np.arange(n), ti] = 1.0
+    onehot_p = np.zeros((n, len(CLASSES)))
+    onehot_p[np.arange(n), pi] = 1.0
+    correct = (ti == pi).astype(np.float64)
+    ones = np.ones(n)
+    brier = np.sum((probs - onehot_t) ** 2, axis=1) if n else np.zeros(0)
+    edges = np.linspace(0, 1, RELIABILITY_BINS + 1)
+    bins = np.zeros((n, RELIABILITY_BINS))
+    bins[np.arange(n), np.clip(np.digitize(winner, edges) - 1, 0, RELIABILITY_BINS - 1)] = 1.0
+    ece = CalibrationGap(rs.sums(bins), rs.sums(bins * winner[:, None]), rs.sums(bins * correct[:, None]))
+    cis = {"accuracy": rs.ratio(correct, ones), "brier": rs.ratio(brier, ones), "ece": rs.of(ece)}
+    tp = onehot_t * correct[:, None]
+    per = {}
+    for i, c in enumerate(CLASSES):
+        per[c] = beside(out["per_class"][c], {"precision": rs.ratio(tp[:, i], onehot_p[:, i]),
+                                             "recall": rs.ratio(tp[:, i], onehot_t[:, i])})
+    return beside({**out, "per_class": per}, cis)
 
 
 def radius_errors(patches: list[dict[str, Any]], label: str) -> dict[str, Any] | None:
@@ -119,23 +197,42 @@ def radius_errors(patches: list[dict[str, Any]], label: str) -> dict[str, Any] |
             "median_rel_error": float(np.median(rel)), "within_2_sigma": float(np.mean(within))}
 
 
-def aggregate_pose(trials: list[dict[str, Any]]) -> dict[str, Any]:
-    """Success rate and error statistics of the final (after ICP) and initial pose estimates."""
+def _median_beside(st: dict[str, float] | None, ci: list[float] | None) -> dict[str, Any] | None:
+    """A :func:`stats` dict with the median's interval beside it (a null dict stays null)."""
+    return None if st is None else beside(st, {"median": ci})
 
-    def block(rows: list[dict[str, Any]]) -> dict[str, Any]:
-        return {"success_rate": float(np.mean([bool(r["success"]) for r in rows])) if rows else None,
-                "rotation_error_deg": stats([r["rotation_error_deg"] for r in rows]),
-                "translation_error_mm": stats([r["translation_error_mm"] for r in rows]),
-                "n": len(rows)}
 
-    out = block(trials)
-    constrained = [t for t in trials if t.get("constrained", True)]
-    out["success_rate_constrained"] = block(constrained)["success_rate"]
+def aggregate_pose(trials: list[dict[str, Any]], resampling: Resampling | None = None) -> dict[str, Any]:
+    """Success rate and error statistics of the final (after ICP) and initial pose estimates; with
+    ``resampling`` (one item per trial) the intervals of the success rates and of the error medians."""
+
+    def block(rows: list[dict[str, Any]], rs: Resampling | None) -> dict[str, Any]:
+        out = {"success_rate": float(np.mean([bool(r["success"]) for r in rows])) if rows else None,
+               "rotation_error_deg": stats([r["rotation_error_deg"] for r in rows]),
+               "translation_error_mm": stats([r["translation_error_mm"] for r in rows]),
+               "n": len(rows)}
+        if rs is None:
+            return out
+        out = beside(out, {"success_rate": rs.ratio([bool(r["success"]) for r in rows], np.ones(len(rows)))})
+        for k in ("rotation_error_deg", "translation_error_mm"):
+            out[k] = _median_beside(out[k], rs.median([r[k] for r in rows]))
+        return out
+
+    rs = None if resampling is None else resampling.check(len(trials))
+    out = block(trials, rs)
+    is_constrained = [bool(t.get("constrained", True)) for t in trials]
+    constrained = [t for t, c in zip(trials, is_constrained, strict=True) if c]
+    out["success_rate_constrained"] = block(constrained, None)["success_rate"]
+    if rs is not None:
+        out["success_rate_constrained_ci95"] = rs.ratio(
+            [bool(t["success"]) and c for t, c in zip(trials, is_constrained, strict=True)], is_constrained)
     out["n_constrained"] = len(constrained)
-    initial = [t["initial"] for t in trials if t.get("initial")]
-    out["initial"] = block(initial) if initial else None
+    has_initial = [bool(t.get("initial")) for t in trials]
+    initial = [t["initial"] for t, h in zip(trials, has_initial, strict=True) if h]
+    out["initial"] = block(initial, None if rs is None else rs.select(has_initial)) if initial else None
     if any("add_mm" in t for t in trials):
-        out["add_mm"] = stats([t.get("add_mm") for t in trials])
+        add = [t.get("add_mm") for t in trials]
+        out["add_mm"] = stats(add) if rs is None else _median_beside(stats(add), rs.median(add))
     return out
 
 
@@ -156,10 +253,50 @@ def prf(truth: Sequence[str], predicted: Sequence[str], labels: Sequence[str] = 
     return {"macro_f1": float(np.mean(scored)) if scored else None, "per_label": per}
 
 
-def aggregate_change(trials: list[dict[str, Any]]) -> dict[str, Any]:
+def prf_intervals(scores: dict[str, Any], truth: Sequence[str], predicted: Sequence[str], rs: Resampling,
+                  labels: Sequence[str] = CHANGE_LABELS) -> dict[str, Any]:
+    """:func:`prf`'s result with intervals beside macro-F1 and each label's precision, recall and F1.
+
+    Per scene and label the sufficient statistics are tp, n_pred and n_true; F1 is then the ratio
+    2 tp / (n_pred + n_true) (equal to 2 P R / (P + R), and 0 when tp = 0), macro-F1 the mean of the F1s
+    of moved, missing, new and altered that are defined on the resample.
+
+    Parameters
+    ----------
+    rs : the resampling of the labelled items (one per element of ``truth``).
+    """
+    t = np.asarray(truth, dtype=object)
+    p = np.asarray(predicted, dtype=object)
+    tp = rs.sums(np.stack([(t == lab) & (p == lab) for lab in labels], axis=1).reshape(len(t), len(labels)))
+    n_pred = rs.sums(np.stack([p == lab for lab in labels], axis=1).reshape(len(t), len(labels)))
+    n_true = rs.sums(np.stack([t == lab for lab in labels], axis=1).reshape(len(t), len(labels)))
+    per = {}
+    for i, lab in enumerate(labels):
+        per[lab] = beside(scores["per_label"][lab], {
+            "precision": rs.of(Ratio(tp[:, i], n_pred[:, i])), "recall": rs.of(Ratio(tp[:, i], n_true[:, i])),
+            "f1": rs.of(Ratio(2 * tp[:, i], n_pred[:, i] + n_true[:, i]))})
+    scored = [labels.index(lab) for lab in MACRO_LABELS if lab in labels]
+    macro = MeanOfRatios(2 * tp[:, scored], n_pred[:, scored] + n_true[:, scored])
+    return beside({**scores, "per_label": per}, {"macro_f1": rs.of(macro)})
+
+
+def aggregate_change(trials: list[dict[str, Any]], resampling: Resampling | None = None) -> dict[str, Any]:
+    """Per-label and macro-F1 scores over the features (and objects) of every trial, and the displacement
+    error of moved features; with ``resampling`` (one item per trial) their intervals."""
+    rs = None if resampling is None else resampling.check(len(trials))
     feats = [f for t in trials for f in t["features"]]
-    out = prf([f["truth"] for f in feats], [f["predicted"] for f in feats])
+    ft, fp = [f["truth"] for f in feats], [f["predicted"] for f in feats]
+    out = prf(ft, fp)
+    if rs is not None:
+        out = prf_intervals(out, ft, fp, rs.expand([len(t["features"]) for t in trials]))
     objs = [o for t in trials for o in t.get("objects", [])]
-    out["objects"] = prf([o["truth"] for o in objs], [o["predicted"] for o in objs]) if objs else None
-    out["displacement_error_mm"] = stats([e for t in trials for e in t.get("displacement_error_mm", [])])
+    ot, op = [o["truth"] for o in objs], [o["predicted"] for o in objs]
+    out["objects"] = prf(ot, op) if objs else None
+    if objs and rs is not None:
+        out["objects"] = prf_intervals(out["objects"], ot, op, rs.expand([len(t.get("objects", [])) for t in trials]))
+    disp = [e for t in trials for e in t.get("displacement_error_mm", [])]
+    out["displacement_error_mm"] = stats(disp)
+    if rs is not None:
+        drs = rs.expand([len(t.get("displacement_error_mm", [])) for t in trials])
+        out["displacement_error_mm"] = _median_beside(out["displacement_error_mm"], drs.median(disp))
     return out

@@ -5,7 +5,8 @@ Every numeric leaf of ``summary.json`` becomes a dotted metric path (``classific
 correct detection, accuracy, precision, recall, F1 and success are better higher; over, under, missed and
 noise rates, the Brier score, errors, times and ``n_failed`` are better lower; counts and settings have no
 direction and are only reported. A section present in the base and null in the candidate is a regression.
-Time rules are relative and off unless asked for (shared machines are noisy).
+Time rules are relative and off unless asked for (shared machines are noisy). The 95 % intervals beside the
+figures (``*_ci95`` keys, and ``ci95_bootstrap``, how they were drawn) are not metrics: they are skipped.
 """
 
 from __future__ import annotations
@@ -104,7 +105,7 @@ def flatten(node: Any, prefix: str = "") -> dict[str, float | None]:
     out: dict[str, float | None] = {}
     if isinstance(node, dict):
         for k, v in node.items():
-            if k in SKIPPED_TREES:
+            if k in SKIPPED_TREES or is_interval_key(str(k)):
                 continue
             path = f"{prefix}.{k}" if prefix else str(k)
             if v is None:
@@ -116,6 +117,11 @@ def flatten(node: Any, prefix: str = "") -> dict[str, float | None]:
             elif isinstance(v, int | float) and math.isfinite(v):
                 out[path] = float(v)
     return out
+
+
+def is_interval_key(key: str) -> bool:
+    """Whether a summary key holds an interval (``accuracy_ci95``) or how intervals were made (``ci95_bootstrap``)."""
+    return key.endswith("_ci95") or key.startswith("ci95")
 
 
 def direction(metric: str) -> str:

@@ -2,6 +2,8 @@
 
 Plots take plain summary data (the dicts of ``summary.json`` and trial records); pictures take image arrays.
 Colours come from :mod:`reports.colours`; axes carry their units. Figures are about 640 px wide at 100 dpi.
+Headline values are drawn with error bars from their 95 % interval (``<key>_ci95`` of the summary) where they
+have one; a value without an interval is drawn without a bar.
 """
 
 from __future__ import annotations
@@ -50,6 +52,34 @@ def to_png(fig: Figure) -> bytes:
 
 def _style(i: int) -> str:
     return METHOD_STYLES[i % len(METHOD_STYLES)]
+
+
+def error_bars(values: Sequence[float], intervals: Sequence[Sequence[float] | None]) -> np.ndarray:
+    """Asymmetric error bars for ``errorbar``/``bar``.
+
+    Parameters
+    ----------
+    values : the plotted values, N of them (NaN for a blank).
+    intervals : N ``(lo, hi)`` or None.
+
+    Returns
+    -------
+    ndarray of shape (2, N): distances below and above each value, never negative (a percentile interval
+    need not contain the value); NaN without an interval, which matplotlib leaves undrawn (a zero-length
+    bar with caps would look like a zero-width interval).
+    """
+    v = np.asarray(values, dtype=float)
+    out = np.full((2, len(v)), np.nan)
+    for i, (x, ci) in enumerate(zip(v, intervals, strict=True)):
+        if ci is not None and np.isfinite(x):
+            out[0, i] = max(x - float(ci[0]), 0.0)
+            out[1, i] = max(float(ci[1]) - x, 0.0)
+    return out
+
+
+def _ci(d: Mapping[str, Any] | None, key: str) -> Sequence[float] | None:
+    ci = (d or {}).get(key + "_ci95")
+    return ci if isinstance(ci, list | tuple) and len(ci) == 2 and None not in ci else None
 
 
 # -- segmentation -------------------------------------------------------------------------------------------
@@ -147,7 +177,7 @@ def reliability_figure(tables: Mapping[str, Sequence[Mapping[str, float]]]) -> b
 
 
 def per_class_figure(per_class: Mapping[str, Mapping[str, Mapping[str, float | None]]]) -> bytes:
-    """Recall (bars) and precision (markers) per truth class, grouped by method.
+    """Recall (bars, with their 95 % intervals) and precision (markers) per truth class, grouped by method.
 
     Parameters
     ----------
@@ -164,7 +194,8 @@ def per_class_figure(per_class: Mapping[str, Mapping[str, Mapping[str, float | N
         pos = x - 0.4 + (i + 0.5) * width
         ax.bar(pos, rec, width=width * 0.95, color=[CLASS_COLOURS[c] for c in CLASSES],
                alpha=max(1.0 - 0.3 * i, 0.45), edgecolor=method_colour(method, methods), linewidth=1.2,
-               hatch=None if i == 0 else "//", label=f"recall ({method})")
+               hatch=None if i == 0 else "//", label=f"recall ({method})",
+               yerr=error_bars(rec, [_ci(pc.get(c), "recall") for c in CLASSES]), ecolor="#374151", capsize=2)
         ax.plot(pos, prec, "D", color=method_colour(method, methods), markersize=5, label=f"precision ({method})")
     ax.set_xticks(x, [f"{c}\n(n={_support(per_class, c)})" for c in CLASSES], fontsize=8)
     ax.set_ylabel("fraction")
@@ -217,7 +248,8 @@ def pose_cdf_figure(errors: Mapping[str, Mapping[str, Mapping[str, Sequence[floa
 
 # -- change -------------------------------------------------------------------------------------------------
 def change_f1_figure(per_label: Mapping[str, Mapping[str, Mapping[str, float | None]]]) -> bytes:
-    """F1 per change label (bars in the label's colour), grouped by method; labels without support are blank.
+    """F1 per change label (bars in the label's colour, with their 95 % intervals), grouped by method; labels
+    without support are blank.
 
     Parameters
     ----------
@@ -232,7 +264,8 @@ def change_f1_figure(per_label: Mapping[str, Mapping[str, Mapping[str, float | N
         f1 = [np.nan if (pl.get(lab) or {}).get("f1") is None else pl[lab]["f1"] for lab in CHANGE_LABELS]
         ax.bar(x - 0.4 + (i + 0.5) * width, f1, width=width * 0.95,
                color=[CHANGE_COLOURS[lab] for lab in CHANGE_LABELS], edgecolor=method_colour(method, methods),
-               linewidth=1.2, hatch=None if i == 0 else "//", label=method)
+               linewidth=1.2, hatch=None if i == 0 else "//", label=method,
+               yerr=error_bars(f1, [_ci(pl.get(lab), "f1") for lab in CHANGE_LABELS]), ecolor="#374151", capsize=2)
     first = next(iter(per_label.values()), {})
     ax.set_xticks(x, [f"{lab}\n(n={int((first.get(lab) or {}).get('support') or 0)})" for lab in CHANGE_LABELS],
                   fontsize=8)
@@ -245,26 +278,56 @@ def change_f1_figure(per_label: Mapping[str, Mapping[str, Mapping[str, float | N
 
 
 # -- sweeps and timing --------------------------------------------------------------------------------------
-def sweep_figure(parameter: str, series: Mapping[str, Sequence[tuple[float, float | None]]],
-                 ylabel: str = "rate") -> bytes:
-    """A metric against a swept parameter (DESIGN 10.13), one line per series.
+def sweep_figure(parameter: str, series: Mapping[str, Sequence[tuple]], ylabel: str = "rate") -> bytes:
+    """A metric against a swept parameter (DESIGN 10.13), one line per series, with error bars where a point
+    has an interval.
 
     Parameters
     ----------
     parameter : the swept parameter's name (the x label).
-    series : label -> ``[(value, metric or None), ...]``.
+    series : label -> ``[(value, metric or None), ...]`` or ``[(value, metric or None, (lo, hi) or None), ...]``.
     """
     fig = new_figure(height_in=3.2)
     ax = fig.add_subplot()
     for label, points in series.items():
-        pts = sorted((v, m) for v, m in points if m is not None)
+        pts = sorted(((p[0], p[1], p[2] if len(p) > 2 else None) for p in points if p[1] is not None),
+                     key=lambda p: p[0])
         if pts:
-            ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", label=label)
+            ys = [p[1] for p in pts]
+            ax.errorbar([p[0] for p in pts], ys, yerr=error_bars(ys, [p[2] for p in pts]), marker="o",
+                        capsize=3, label=label)
     ax.set_xlabel(parameter + (" (m)" if parameter == "max_range" else " (x preset)" if parameter == "noise_scale"
                                else " (rays)" if parameter == "footprint_rays" else ""))
     ax.set_ylabel(ylabel)
     ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    return to_png(fig)
+
+
+def group_headline_figure(points: Mapping[str, Mapping[str, tuple[float, Sequence[float] | None]]]) -> bytes:
+    """Headline rates per group: a dot per group and metric, with its 95 % interval as an error bar.
+
+    Parameters
+    ----------
+    points : metric label -> group name -> ``(value, (lo, hi) or None)``; values are rates in [0, 1].
+    """
+    groups = list(dict.fromkeys(g for per in points.values() for g in per))
+    fig = new_figure(height_in=1.4 + 0.32 * len(groups) * max(len(points), 1) ** 0.5)
+    ax = fig.add_subplot()
+    metrics = list(points)
+    height = 0.8 / max(len(metrics), 1)
+    y = np.arange(len(groups))
+    for i, (label, per) in enumerate(points.items()):
+        vals = [per[g][0] if g in per else np.nan for g in groups]
+        cis = [per[g][1] if g in per else None for g in groups]
+        ax.errorbar(vals, y - 0.4 + (i + 0.5) * height, xerr=error_bars(vals, cis), fmt="o", capsize=3,
+                    color=method_colour(label, metrics), label=label)
+    ax.set_yticks(y, groups, fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlim(-0.02, 1.02)
+    ax.set_xlabel("rate (core method); bars: 95 % interval over scenes")
+    ax.grid(axis="x", alpha=0.3)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     return to_png(fig)
 

@@ -67,6 +67,26 @@ def lookup(sections: Mapping[str, Any] | None, path: tuple[str, ...]) -> float |
     return float(node)
 
 
+def interval_path(path: tuple[str, ...]) -> tuple[str, ...]:
+    """Where the 95 % interval of the figure at ``path`` lives: beside it, its key with ``_ci95`` appended."""
+    return (*path[:-1], path[-1] + "_ci95")
+
+
+def lookup_interval(sections: Mapping[str, Any] | None, path: tuple[str, ...]) -> tuple[float, float] | None:
+    """The interval ``(lo, hi)`` beside the figure at ``path`` (DESIGN 11.3); None when there is none (a null
+    interval: fewer than two scenes; or a summary written before intervals existed)."""
+    node: Any = sections
+    for key in interval_path(path):
+        if not isinstance(node, Mapping):
+            return None
+        node = node.get(key)
+    if not isinstance(node, list | tuple) or len(node) != 2:
+        return None
+    if not all(isinstance(x, int | float) and not isinstance(x, bool) and x == x for x in node):
+        return None
+    return float(node[0]), float(node[1])
+
+
 def headline_deltas(base: Mapping[str, Any], candidate: Mapping[str, Any], method: str = "core",
                     metrics: tuple[Metric, ...] = HEADLINE) -> list[dict[str, Any]]:
     """The headline metrics of ``method`` in two summaries, with candidate - base and whether it got better.

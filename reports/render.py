@@ -1,5 +1,9 @@
 """The evaluation report of a run directory: ``report.html`` (self-contained, figures embedded) and ``report.md``.
 
+Headline figures are shown with their 95 % interval from ``summary.json`` (``<key>_ci95``, DESIGN 11.3) as
+``0.812 [0.76, 0.86]``, and plotted with error bars; a figure whose interval is null (fewer than two scenes)
+is shown bare, never with an interval made up here.
+
 :func:`render_report` reads ``summary.json``, ``run.json`` and ``trials/*.json`` (never logs), builds a
 :class:`reports.document.Document` and writes it twice. A stage whose summary section is null is shown as
 "not built yet", never left out and never filled in. The gallery pictures and the regression verdicts come
@@ -25,7 +29,7 @@ from reports.colours import CHANGE_COLOURS, CHANGE_LABELS, CLASS_COLOURS, CLASSE
 from reports.document import Cell, Code, Document, GalleryTrial, Grid, Image, Note, Para, Section, Table
 from reports.html import render_html
 from reports.markdown import render_markdown
-from reports.regression import HEADLINE, Metric, Missing, headline_deltas, lookup
+from reports.regression import HEADLINE, Metric, Missing, headline_deltas, lookup, lookup_interval
 
 HOOVER_RATES = ("correct_detection_rate", "over_rate", "under_rate", "missed_rate", "noise_rate")
 HOOVER_HEAD = ("correct", "over", "under", "missed", "noise")
@@ -111,10 +115,30 @@ def fmt(x: Any, digits: int = 3, unit: str = "") -> str:
     return f"{s} {unit}".strip()
 
 
-def value_cell(v: float | Missing, digits: int = 3, unit: str = "") -> Cell:
+def fmt_ci(x: Any, ci: tuple[float, float] | None, digits: int = 3, unit: str = "") -> str:
+    """A number with its interval, ``0.812 [0.76, 0.86]`` or ``9.0 [4.0, 14.0] mm`` (one digit fewer for the
+    bounds, at least one); the bare number when there is no interval or no number."""
+    text = fmt(x, digits)
+    if ci is None or text == "n/a":
+        return fmt(x, digits, unit)
+    d = max(digits - 1, 1)
+    return f"{text} [{ci[0]:.{d}f}, {ci[1]:.{d}f}] {unit}".strip()
+
+
+def value_cell(v: float | Missing, digits: int = 3, unit: str = "", ci: tuple[float, float] | None = None) -> Cell:
     if isinstance(v, Missing):
         return Cell(v.why, "missing" if v.why == NOT_BUILT else "na")
-    return Cell(fmt(v, digits, unit), "num")
+    return Cell(fmt_ci(v, ci, digits, unit), "num")
+
+
+def figure_cell(sections: Mapping[str, Any] | None, m: Metric) -> Cell:
+    """The cell of headline metric ``m`` of a method's sections, with its interval when it has one."""
+    return value_cell(lookup(sections, m.path), m.digits, m.unit, lookup_interval(sections, m.path))
+
+
+def ci_cell(sec: Mapping[str, Any] | None, *path: str, digits: int = 3, unit: str = "") -> Cell:
+    """A numeric cell of ``sec`` at ``path`` with the interval beside it (if any)."""
+    return Cell(fmt_ci(_get(sec, *path), lookup_interval(sec, path), digits, unit), "num")
 
 
 def _get(d: Mapping[str, Any] | None, *path: str) -> Any:
@@ -226,7 +250,7 @@ def headline_section(run: RunData) -> Section:
     rows = []
     for m in HEADLINE:
         cells = [Cell(m.label), Cell(m.direction)]
-        cells += [value_cell(lookup(run.sections(meth), m.path), m.digits, m.unit) for meth in methods]
+        cells += [figure_cell(run.sections(meth), m) for meth in methods]
         rows.append(tuple(cells))
     rows.append((Cell("trials (failed)"), Cell(""),
                  *[Cell(f"{s.get('n_trials', 0)} ({s.get('n_failed', 0)})", "num") for _ in methods]))
@@ -234,16 +258,59 @@ def headline_section(run: RunData) -> Section:
         Table(("metric", "better", *methods), tuple(rows), id="headline",
               caption="All trials pooled. " + "; ".join(f"{m}: {METHOD_NOTES.get(m, 'peer method')}"
                                                         for m in methods) + "."),
+        Para(intervals_note(s)),
     ]
     groups = s.get("groups") or {}
     if groups:
         gm = [m for m in HEADLINE if m.label in _GROUP_METRICS]
         grows = [(Cell(name), Cell(str(g.get("n_trials", "")), "num"),
                   Cell(str(g.get("n_failed", 0)), "bad" if g.get("n_failed") else "num"),
-                  *[value_cell(lookup(g, m.path), m.digits, m.unit) for m in gm]) for name, g in groups.items()]
+                  *[figure_cell(g, m) for m in gm]) for name, g in groups.items()]
         blocks.append(Table(("group (scene/sensor)", "trials", "failed", *[_short(m) for m in gm]), tuple(grows),
                             caption="Per group, core method (DESIGN 10.5: the per-preset figures)."))
+        points = group_points(groups)
+        if len(groups) > 1 and points:
+            blocks.append(Image(figures.group_headline_figure(points), "Headline rates per group, core method "
+                                "(dots; bars: 95 % interval over the group's scenes, where it has two or more).",
+                                alt="headline rates per group"))
     return Section("headline", "Headline", blocks)
+
+
+def intervals_note(summary: Mapping[str, Any]) -> str:
+    """What the bracketed intervals of the tables are, and how many scenes they rest on."""
+    boot = summary.get("ci95_bootstrap")
+    if not isinstance(boot, Mapping):
+        return "No intervals: this summary.json carries none (written before DESIGN 11.3)."
+    n = boot.get("n_clusters", 0)
+    scenes = ", ".join(str(c) for c in (boot.get("clusters") or [])[:8])
+    more = "" if n <= 8 else f" and {n - 8} more"
+    text = (f"In brackets: {100 * float(boot.get('level', 0.95)):.0f} % intervals ({boot.get('method')}: whole "
+            f"scenes resampled with replacement, {boot.get('n_boot')} resamples, seed {boot.get('seed')}; trials of "
+            "one scene are correlated, so the scene is the unit). ")
+    if n < 2:
+        return text + (f"This run has {n} scene ({scenes or 'none'}): one scene gives no interval over scenes, so "
+                       "none is shown.")
+    return text + (f"Pooled over {n} scenes ({scenes}{more}); a group of one scene, or a figure that only one scene "
+                   "defines, has none." + (" With so few scenes an interval only shows the spread between them."
+                                           if n <= 3 else ""))
+
+
+GROUP_FIGURE_METRICS = (("correct detection", ("segmentation", "correct_detection_rate")),
+                        ("accuracy", ("classification", "accuracy")),
+                        ("pose success", ("pose", "success_rate")),
+                        ("change macro-F1", ("change", "macro_f1")))
+
+
+def group_points(groups: Mapping[str, Mapping[str, Any]]
+                 ) -> dict[str, dict[str, tuple[float, tuple[float, float] | None]]]:
+    """metric -> group -> (value, interval or None), for the core's headline rates that some group has."""
+    out: dict[str, dict[str, tuple[float, tuple[float, float] | None]]] = {}
+    for label, path in GROUP_FIGURE_METRICS:
+        for name, g in groups.items():
+            v = lookup(g, path)
+            if not isinstance(v, Missing):
+                out.setdefault(label, {})[name] = (v, lookup_interval(g, path))
+    return out
 
 
 _GROUP_METRICS = ("segmentation: correct detection rate", "classification: accuracy", "classification: Brier score",
@@ -272,7 +339,7 @@ def segmentation_section(run: RunData) -> Section:
         if sec is None:
             rows.append((Cell(m), *[Cell(NOT_BUILT, "missing") for _ in HOOVER_RATES]))
         else:
-            rows.append((Cell(m), *[Cell(fmt(sec.get(k)), "num") for k in HOOVER_RATES]))
+            rows.append((Cell(m), *[ci_cell(sec, k) for k in HOOVER_RATES]))
     blocks.append(Table(("method", *HOOVER_HEAD), tuple(rows), caption="Hoover rates (fraction of regions)"))
     sweeps = {}
     for m, sec in secs.items():
@@ -285,7 +352,7 @@ def segmentation_section(run: RunData) -> Section:
                             + (f"; {', '.join(shared)} share(s) the core's segmentation" if shared else "") + ".",
                             alt="Hoover metrics vs tolerance"))
     groups = run.summary.get("groups") or {}
-    grows = [(Cell(g), *[Cell(fmt(_get(sec, "segmentation", k)), "num") if _get(sec, "segmentation") else
+    grows = [(Cell(g), *[ci_cell(sec, "segmentation", k) if _get(sec, "segmentation") else
                          Cell(NOT_BUILT, "missing") for k in HOOVER_RATES]) for g, sec in groups.items()]
     if len(grows) > 1:
         blocks.append(Table(("group", *HOOVER_HEAD), tuple(grows), caption="Per group, core method"))
@@ -326,8 +393,8 @@ def classification_section(run: RunData, table_trial: str | None) -> Section:
         f"the surface it mostly covers ({first.get('n_patches', 0)} such patches of "
         f"{first.get('n_patches_all', 'n/a')}). Brier score: multi-class over PLAN, CYL, SPH, CONE, OTH; ECE: "
         "expected calibration error of the winning label's probability.")]
-    rows = [(Cell(m), *([Cell(fmt(sec.get("accuracy")), "num"), Cell(fmt(sec.get("brier")), "num"),
-                         Cell(fmt(sec.get("ece")), "num"), Cell(str(sec.get("n_patches", "")), "num")]
+    rows = [(Cell(m), *([ci_cell(sec, "accuracy"), ci_cell(sec, "brier"),
+                         ci_cell(sec, "ece"), Cell(str(sec.get("n_patches", "")), "num")]
                         if sec else [Cell(NOT_BUILT, "missing")] * 4)) for m, sec in secs.items()]
     blocks.append(Table(("method", "accuracy", "Brier", "ECE", "patches"), tuple(rows)))
     head = ["class", "support"]
@@ -493,11 +560,10 @@ def pose_section(run: RunData) -> Section:
                 break
             if sec is None:
                 continue
-            rows.append((Cell(name), Cell(fmt(sec.get("success_rate")), "num"),
-                         Cell(fmt(sec.get("success_rate_constrained")), "num"),
-                         *[Cell(fmt(_get(sec, "rotation_error_deg", k)), "num") for k in ("median", "p90", "max")],
-                         *[Cell(fmt(_get(sec, "translation_error_mm", k), 1), "num") for k in ("median", "p90", "max")],
-                         Cell(fmt(_get(sec, "add_mm", "median"), 1), "num")))
+            rows.append((Cell(name), ci_cell(sec, "success_rate"), ci_cell(sec, "success_rate_constrained"),
+                         *[ci_cell(sec, "rotation_error_deg", k) for k in ("median", "p90", "max")],
+                         *[ci_cell(sec, "translation_error_mm", k, digits=1) for k in ("median", "p90", "max")],
+                         ci_cell(sec, "add_mm", "median", digits=1)))
     blocks.append(Table(head, tuple(rows)))
     all_errors = {m: pose_errors(run.ok_records(), m) for m in methods}
     errors = {m: e for m, e in all_errors.items() if any(e.values())}
@@ -507,10 +573,9 @@ def pose_section(run: RunData) -> Section:
                             alt="pose error CDF"))
     else:
         blocks.append(Note("No per-trial pose errors in the trial records: no CDF to draw.", "info"))
-    grows = [(Cell(g), Cell(fmt(_get(sec, "pose", "success_rate")) if _get(sec, "pose") else NOT_BUILT,
-                            "num" if _get(sec, "pose") else "missing"),
-              Cell(fmt(_get(sec, "pose", "rotation_error_deg", "median")), "num"),
-              Cell(fmt(_get(sec, "pose", "translation_error_mm", "median"), 1), "num"))
+    grows = [(Cell(g), ci_cell(sec, "pose", "success_rate") if _get(sec, "pose") else Cell(NOT_BUILT, "missing"),
+              ci_cell(sec, "pose", "rotation_error_deg", "median"),
+              ci_cell(sec, "pose", "translation_error_mm", "median", digits=1))
              for g, sec in (run.summary.get("groups") or {}).items()]
     if len(grows) > 1:
         blocks.append(Table(("group", "success", "rot. median (deg)", "trans. median (mm)"), tuple(grows),
@@ -527,9 +592,9 @@ def change_section(run: RunData) -> Section:
     blocks: list[Any] = [Para(
         "Per label precision, recall and F1 over the features the truth says are observable from the viewpoint; "
         "macro-F1 over moved, missing, new and altered (unchanged is reported beside it).")]
-    rows = [(Cell(m), Cell(fmt(sec.get("macro_f1")), "num") if sec else Cell(NOT_BUILT, "missing"),
-             Cell(fmt(_get(sec, "objects", "macro_f1")), "num") if sec else Cell(NOT_BUILT, "missing"),
-             Cell(fmt(_get(sec, "displacement_error_mm", "median"), 1), "num") if sec else Cell(NOT_BUILT, "missing"))
+    rows = [(Cell(m), ci_cell(sec, "macro_f1") if sec else Cell(NOT_BUILT, "missing"),
+             ci_cell(sec, "objects", "macro_f1") if sec else Cell(NOT_BUILT, "missing"),
+             ci_cell(sec, "displacement_error_mm", "median", digits=1) if sec else Cell(NOT_BUILT, "missing"))
             for m, sec in secs.items()]
     blocks.append(Table(("method", "macro-F1 (features)", "macro-F1 (objects)", "moved: displacement error median "
                                                                                "(mm)"), tuple(rows)))
@@ -541,7 +606,8 @@ def change_section(run: RunData) -> Section:
     for lab in CHANGE_LABELS:
         cells = [Cell(lab, colour=CHANGE_COLOURS[lab]), Cell(fmt(_get(first, "per_label", lab, "support")), "num")]
         for sec in present.values():
-            cells += [Cell(fmt(_get(sec, "per_label", lab, k)), "num") for k in ("precision", "recall", "f1")]
+            cells += [Cell(fmt(_get(sec, "per_label", lab, k)), "num") for k in ("precision", "recall")]
+            cells.append(ci_cell(sec, "per_label", lab, "f1"))
         lrows.append(tuple(cells))
     blocks.append(Table(tuple(head), tuple(lrows), caption="Per change label, features"))
     per_label = {m: sec["per_label"] for m, sec in present.items() if sec.get("per_label")}
@@ -551,7 +617,7 @@ def change_section(run: RunData) -> Section:
     obj = {m: sec["objects"] for m, sec in present.items() if sec.get("objects")}
     if obj:
         orows = [(Cell(lab, colour=CHANGE_COLOURS[lab]),
-                  *[Cell(fmt(_get(o, "per_label", lab, "f1")), "num") for o in obj.values()]) for lab in CHANGE_LABELS]
+                  *[ci_cell(o, "per_label", lab, "f1") for o in obj.values()]) for lab in CHANGE_LABELS]
         blocks.append(Table(("label", *[f"F1 ({m})" for m in obj]), tuple(orows), caption="Per change label, objects"))
     return Section("change", "Change", blocks)
 
@@ -590,22 +656,24 @@ def sweeps_section(run: RunData) -> Section | None:
         return None
     blocks: list[Any] = []
     for key in sorted({k for k, _, _ in series}):
-        lines: dict[str, list[tuple[float, float | None]]] = {}
+        lines: dict[str, list[tuple[float, float | None, tuple[float, float] | None]]] = {}
         rows = []
         for (k, base, others), pts in sorted(series.items()):
             if k != key:
                 continue
             suffix = "".join(f" [{a}={b:g}]" for a, b in others)
             for label, path in SWEEP_METRICS:
-                vals = [(v, None if isinstance(x := lookup(g, path), Missing) else x) for v, g in pts]
-                if any(x is not None for _, x in vals):
+                vals = [(v, None if isinstance(x := lookup(g, path), Missing) else x, lookup_interval(g, path))
+                        for v, g in pts]
+                if any(x is not None for _, x, _ in vals):
                     lines[f"{label}, {base}{suffix}"] = vals
             for v, g in sorted(pts, key=lambda t: t[0]):
                 rows.append((Cell(base + suffix), Cell(f"{v:g}", "num"), Cell(str(g.get("n_trials", "")), "num"),
-                             *[value_cell(lookup(g, path)) for _, path in SWEEP_METRICS]))
+                             *[value_cell(lookup(g, path), ci=lookup_interval(g, path)) for _, path in SWEEP_METRICS]))
         if lines:
             blocks.append(Image(figures.sweep_figure(key, lines), f"Metrics against {key} (core method, one point "
-                                "per swept value; each value is a group of its own).", alt=f"metrics vs {key}"))
+                                "per swept value; each value is a group of its own; bars: 95 % interval over the "
+                                "group's scenes, where it has two or more).", alt=f"metrics vs {key}"))
         blocks.append(Table(("group", key, "trials", *[lab for lab, _ in SWEEP_METRICS]), tuple(rows),
                             caption=f"Swept parameter {key}"))
     return Section("sweeps", "Parameter sweeps", blocks)
@@ -658,8 +726,8 @@ def methods_section(run: RunData) -> Section | None:
     rows = []
     for scope_name, scope in scopes:
         for meth in run.methods:
-            rows.append((Cell(scope_name), Cell(meth), *[value_cell(lookup(run.sections(meth, scope), m.path),
-                                                                    m.digits, m.unit) for m in metrics]))
+            rows.append((Cell(scope_name), Cell(meth), *[figure_cell(run.sections(meth, scope), m)
+                                                         for m in metrics]))
     blocks: list[Any] = [
         Para("Every method runs on the same trials and images. " + "; ".join(
             f"{m}: {METHOD_NOTES.get(m, 'peer method')}" for m in run.methods) + "."),
@@ -678,8 +746,8 @@ def oracles_section(run: RunData) -> Section | None:
     if not oracles:
         return None
     metrics = [m for m in HEADLINE if m.path[0] != "timing_s"]
-    rows = [(Cell(m.label), Cell(m.direction), value_cell(lookup(run.summary, m.path), m.digits, m.unit),
-             *[value_cell(lookup(sec, m.path), m.digits, m.unit) for sec in oracles.values()]) for m in metrics]
+    rows = [(Cell(m.label), Cell(m.direction), figure_cell(run.summary, m),
+             *[figure_cell(sec, m) for sec in oracles.values()]) for m in metrics]
     blocks: list[Any] = [
         Para("Each oracle replaces one stage of the core by the truth, so the figures after it show how much of "
              "the end-to-end error that stage causes. " + "; ".join(
@@ -790,9 +858,9 @@ def regression_section(run: RunData, base: Mapping[str, Any], base_name: str,
 
 
 def _delta_value(v: float | None, summary: Mapping[str, Any], m: Metric, method: str) -> Cell:
-    if v is not None:
-        return Cell(fmt(v, m.digits, m.unit), "num")
     sections = summary if method == "core" else (summary.get("baselines") or {}).get(method)
+    if v is not None:
+        return Cell(fmt_ci(v, lookup_interval(sections, m.path), m.digits, m.unit), "num")
     return value_cell(lookup(sections, m.path), m.digits, m.unit)
 
 

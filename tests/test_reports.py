@@ -485,3 +485,46 @@ def test_smoke_suite_report_in_headless_chromium(tmp_path):
     assert main(["report", str(out), "--baseline", str(out), "--gallery", "1"]) == 0
     html = (out / "report.html").read_text()
     assert 'id="regression"' in html and "No regression" in html
+
+
+# -- intervals (DESIGN 11.3) --------------------------------------------------------------------------------
+def test_intervals_appear_in_the_tables_of_a_many_scene_run(tmp_path):
+    records = make_records(pose=True, change=True, groups=("mockup/mockup_laser", "factory_bay/factory_scanner"))
+    for i, r in enumerate(records):
+        r["spec"]["scene"] = f"scene-s{i}"  # four scenes pooled, two in each group
+    run = write_run(tmp_path / "run", records)
+    summary = json.loads((run / "summary.json").read_text())
+    html, md = (p.read_text() for p in render_report(run))
+    lo, hi = summary["classification"]["accuracy_ci95"]
+    acc = f"{summary['classification']['accuracy']:.3f} [{lo:.2f}, {hi:.2f}]"
+    headline = re.search(r'<table id="headline">.*?</table>', html, re.S).group(0)
+    assert acc in headline and f"{summary['pose']['success_rate']:.3f} [" in headline
+    assert acc.replace("[", "\\[").replace("]", "\\]") in md  # Markdown escapes the brackets
+    lo, hi = summary["pose"]["rotation_error_deg"]["median_ci95"]
+    assert f"{summary['pose']['rotation_error_deg']['median']:.3f} [{lo:.2f}, {hi:.2f}]" in html
+    lo, hi = summary["groups"]["mockup/mockup_laser"]["segmentation"]["correct_detection_rate_ci95"]
+    assert f"{summary['groups']['mockup/mockup_laser']['segmentation']['correct_detection_rate']:.3f} " \
+           f"[{lo:.2f}, {hi:.2f}]" in html  # per group
+    assert "headline rates per group" in img_alts(html) and "Pooled over 4 scenes" in html
+
+
+def test_one_scene_run_shows_no_interval(null_report, full_report):
+    for run, html, md in (null_report, full_report):
+        summary = json.loads((run / "summary.json").read_text())
+        assert summary["ci95_bootstrap"]["n_clusters"] == 1 and summary["classification"]["accuracy_ci95"] is None
+        tables = "".join(re.findall(r"<table.*?</table>", html, re.S))
+        assert not re.search(r"\d \[-?\d", tables)  # no "0.812 [0.76, 0.86]" anywhere
+        assert not re.search(r"\d \\\[-?\d", md)
+        assert "one scene gives no interval over scenes" in html
+
+
+def test_error_bars_are_drawn_only_where_there_is_an_interval():
+    bars = figures.error_bars([0.5, 0.6, np.nan, 0.2], [(0.4, 0.7), None, (0.1, 0.2), (0.25, 0.3)])
+    assert bars[:, 0].tolist() == pytest.approx([0.1, 0.2]) and np.all(np.isnan(bars[:, 1:3]))
+    assert bars[:, 3].tolist() == pytest.approx([0.0, 0.1])  # an interval above the value: no negative bar
+    png = figures.group_headline_figure({"accuracy": {"a/x": (0.8, (0.7, 0.9)), "b/y": (0.6, None)},
+                                         "pose success": {"a/x": (0.5, (0.2, 0.8))}})
+    assert png[:8] == PNG_MAGIC
+    png = figures.sweep_figure("noise_scale", {"accuracy": [(0.5, 0.9, (0.8, 0.95)), (1.0, None, None),
+                                                            (2.0, 0.6, None)]})
+    assert png[:8] == PNG_MAGIC
