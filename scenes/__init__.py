@@ -1,5 +1,5 @@
-"""Scenes: the a priori model (features, objects), YAML files, the factory generator, perturbations
-with ground truth, and MJCF export for MuJoCo."""
+"""Scenes: the a priori model (features, objects), YAML files, the factory generator and the mock-up family,
+perturbations with ground truth, and MJCF export for MuJoCo."""
 
 from scenes.config import ConfigError
 from scenes.features import TRUTH_CLASSES, Cone, Cylinder, Feature, Plane, Sphere, Torus

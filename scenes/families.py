@@ -18,7 +18,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from scenes.generator import DATA_DIR, GeneratorConfig, generate_factory
+from scenes.generator import DATA_DIR, FACTORY_GENERATOR, GeneratorConfig, generate_factory
+from scenes.mockup_family import MOCKUP_FAMILY, MockupFamilyConfig, generate_mockup
 from scenes.model import SceneModel
 
 
@@ -36,14 +37,12 @@ def _factory(config: Path, seed: int, name: str) -> SceneModel:
 
 
 def _mockup(config: Path, seed: int, name: str) -> SceneModel:
-    from scenes.mockup_family import MockupFamilyConfig, generate_mockup
-
     return generate_mockup(MockupFamilyConfig.load(config), seed, name)
 
 
 FAMILIES: dict[str, Family] = {
-    "factory": Family("factory", DATA_DIR / "factory_generator.yaml", _factory),
-    "mockup": Family("mockup", DATA_DIR / "mockup_family.yaml", _mockup),
+    "factory": Family("factory", FACTORY_GENERATOR, _factory),
+    "mockup": Family("mockup", MOCKUP_FAMILY, _mockup),
 }
 
 

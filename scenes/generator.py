@@ -10,12 +10,14 @@ The generator config is YAML (schema ``generator/1``, see ``scenes/data/factory_
             height: [1.5, 4.5], bend_ratio: [1.5, 3.0], reducer_probability: 0.3}
     clearance: 0.1
 
-Same config and seed: the same model, byte for byte once saved.
+Same config and seed: the same model, byte for byte once saved. The parametric family of mock-ups drawn
+around :func:`mockup_model` is :mod:`scenes.mockup_family`.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,6 +29,9 @@ from scenes.config import Fields, load_yaml
 from scenes.model import Object, SceneModel
 
 DATA_DIR = Path(__file__).parent / "data"
+#: The shipped factory generator config (schema ``generator/1``), equal to ``GeneratorConfig()``'s defaults
+#: apart from ``reducer_probability`` (0.4 in the file).
+FACTORY_GENERATOR = DATA_DIR / "factory_generator.yaml"
 
 
 @dataclass(frozen=True)
@@ -114,7 +119,7 @@ class GeneratorConfig:
             pipe_height=rng_of(pipes, "height", d.pipe_height),
             bend_ratio=rng_of(pipes, "bend_ratio", d.bend_ratio),
             reducer_probability=pipes.number("reducer_probability", d.reducer_probability, min=0, max=1),
-            clearance=root.number("clearance", d.clearance, positive=True),
+            clearance=root.number("clearance", d.clearance, positive=True, min=1e-4),  # samples: clearance / 2 apart
             max_tries=root.integer("max_tries", d.max_tries, min=1, max=10_000),
         )
         if cfg.spherical_tanks > cfg.tanks:
@@ -130,30 +135,39 @@ class GeneratorConfig:
         return cfg
 
 
-class _Placer:
-    """Places objects one by one with rejection of interpenetrating candidates."""
+class Placer:
+    """Places objects one by one with rejection of interpenetrating candidates.
 
-    def __init__(self, cfg: GeneratorConfig, rng: np.random.Generator):
-        self.cfg, self.rng = cfg, rng
-        self.index = ClearanceIndex(spacing=cfg.clearance / 2, clearance=cfg.clearance)
+    Parameters
+    ----------
+    clearance : minimum gap between placed objects (metres); samples are spaced by half of it.
+    max_tries : candidates drawn per object before it is skipped (its name is added to ``skipped``).
+    rng : source of every draw.
+    fits : optional extra acceptance test of a candidate (e.g. "lies on the table").
+    """
+
+    def __init__(self, clearance: float, max_tries: int, rng: np.random.Generator,
+                 fits: Callable[[Object], bool] | None = None):
+        self.max_tries, self.rng, self.fits = max_tries, rng, fits
+        self.index = ClearanceIndex(spacing=clearance / 2, clearance=clearance)
         self.objects: list[Object] = []
-        self.skipped = 0
+        self.skipped: list[str] = []
 
     def add_fixed(self, obj: Object, in_index: bool = True) -> None:
         self.objects.append(obj)
         if in_index:
             self.index.add(obj)
 
-    def place(self, make) -> bool:
-        for _ in range(self.cfg.max_tries):
+    def place(self, make: Callable[[np.random.Generator], Object], name: str = "") -> bool:
+        for _ in range(self.max_tries):
             try:
                 obj = make(self.rng)
             except ValueError:
                 continue  # geometrically impossible draw (e.g. a segment too short for its elbows)
-            if not self.index.collides(obj):
+            if (self.fits is None or self.fits(obj)) and not self.index.collides(obj):
                 self.add_fixed(obj)
                 return True
-        self.skipped += 1
+        self.skipped.append(name)
         return False
 
 
@@ -162,7 +176,7 @@ def generate_factory(cfg: GeneratorConfig, seed: int, name: str | None = None) -
     rng = np.random.default_rng([seed, 0x5CE7E])
     sx, sy = cfg.size
     t, H = cfg.wall_thickness, cfg.wall_height
-    placer = _Placer(cfg, rng)
+    placer = Placer(cfg.clearance, cfg.max_tries, rng)
     placer.add_fixed(builders.floor("floor", sx + 2 * t, sy + 2 * t), in_index=False)
     for oid, c, yaw, length in (("wall_s", (0, -sy / 2 - t / 2, 0), 0.0, sx + 2 * t),
                                 ("wall_n", (0, sy / 2 + t / 2, 0), 0.0, sx + 2 * t),
@@ -230,13 +244,13 @@ def generate_factory(cfg: GeneratorConfig, seed: int, name: str | None = None) -
         return make
 
     for i in range(cfg.cabinets):
-        placer.place(cabinet(i))
+        placer.place(cabinet(i), f"cabinet{i}")
     for i in range(cfg.tanks):
-        placer.place(tank(i, i < cfg.spherical_tanks))
+        placer.place(tank(i, i < cfg.spherical_tanks), f"tank{i}")
     styles = ["vertical"] * cfg.vertical_runs + ["slanted"] * cfg.slanted_runs
     styles += ["horizontal"] * (cfg.pipe_runs - len(styles))
     for i, style in enumerate(styles):
-        placer.place(pipe(i, style))
+        placer.place(pipe(i, style), f"pipe{i}")
     return SceneModel(name or f"factory_bay_{seed}", tuple(placer.objects))
 
 
@@ -260,6 +274,7 @@ def shipped_scene(name: str) -> Path:
     """Path of a shipped scene file by name (``mockup``, ``factory_bay``)."""
     path = DATA_DIR / f"{name}.yaml"
     if not path.exists():
-        known = sorted(p.stem for p in DATA_DIR.glob("*.yaml") if not p.stem.endswith(("_perturbation", "_generator")))
+        known = sorted(p.stem for p in DATA_DIR.glob("*.yaml")
+                       if not p.stem.endswith(("_perturbation", "_generator", "_family")))
         raise FileNotFoundError(f"no shipped scene {name!r} (known: {', '.join(known)})")
     return path

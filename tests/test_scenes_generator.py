@@ -146,6 +146,18 @@ def test_factory_magnitudes_on_the_mockup_give_a_clear_error(tmp_path, capsys):
     ("new: {count: [1, 99]}", r"new\.count"),
     ("teleported: {probability: 0.1}", r"unknown key\(s\) teleported"),
     ("protected_kinds: [floor, moon]", "protected_kinds"),
+    ("moved: {by_kind: {wall: 0.1}}", r"moved\.by_kind\.wall: walls are never moved \(a bay's structure\)"),
+    ("missing: {by_kind: {wall: 0.1}}", r"missing\.by_kind\.wall: walls are never removed"),
+    ("altered: {by_kind: {floor: 0.1}}", r"altered\.by_kind\.floor: the floor never changes"),
+    ("altered: {by_kind: {moon: 0.1}}", r"altered\.by_kind: unknown key\(s\) moon"),
+    ("altered: {by_kind: {cabinet: 1.5}}", r"altered\.by_kind\.cabinet: must be <= 1"),
+    ("altered: {by_kind: [cabinet]}", r"altered\.by_kind: expected a mapping"),
+    ("moved: {by_kind: {cabinet: 0.6}}\naltered: {by_kind: {cabinet: 0.5}}",
+     "probabilities must be <= 1, got 1.2 for cabinet"),
+    ("altered: {size_change: [0.2, 0.95]}", r"altered\.size_change: expected \[low, high\] with 0 <= low <= high"),
+    ("new: {kinds: {pipe_run: 0, cabinet: 0}}", r"new\.kinds: needs a kind with a weight > 0"),
+    ("new: {kinds: {castle: 1}}", r"new\.kinds: unknown key\(s\) castle"),
+    ("new: {tank_radius: [0, 0.5]}", "sizes of new parts must be > 0"),
 ])
 def test_perturbation_spec_errors(text, message):
     with pytest.raises(ConfigError, match=message):
