@@ -265,7 +265,7 @@ def _group_scenes(g: Fields, base: Path) -> list[_GroupScene]:
         name = g.string("scene")
         return [_GroupScene(Path(name).stem, Path(name).stem, _resolve_data(g, "scene", name, base))]
     family = g.string("family", choices=tuple(FAMILIES))
-    config = None
+    config = str(family_config_path(family))  # named in the spec: the file enters the configuration hash
     if g.has("family_config"):
         value = g.string("family_config")
         local = base / value

@@ -16,7 +16,7 @@ from recognition.segmentation import Patch
 
 @pytest.fixture(scope="module")
 def mockup_scan():
-    spec = next(t for t in load_suite("default").trials if t.trial_id == "mockup-p0-v1-mockup_laser-n0")
+    spec = next(t for t in load_suite("classic").trials if t.trial_id == "mockup-p0-v1-mockup_laser-n0")
     prepared = prepare_scene(spec, None)
     config = sensor_for(spec)
     view = trial_viewpoints(spec, prepared, config).viewpoints[0]

@@ -15,7 +15,7 @@ from sensors.io import save_npz
 @pytest.fixture(scope="module")
 def saved_trial(tmp_path_factory):
     """A default-suite mock-up trial (a constrained view) saved as a scan file and an a priori scene YAML."""
-    spec = next(t for t in load_suite("default").trials if t.trial_id == "mockup-p0-v1-mockup_laser-n0")
+    spec = next(t for t in load_suite("classic").trials if t.trial_id == "mockup-p0-v1-mockup_laser-n0")
     prepared = prepare_scene(spec, None)
     config = sensor_for(spec)
     view = trial_viewpoints(spec, prepared, config).viewpoints[0]

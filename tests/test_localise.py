@@ -105,7 +105,7 @@ def test_a_patch_the_interpretation_leaves_unmatched_does_not_pull_icp():
     from recognition.describe import describe
     from sensors.simulate import Simulator
 
-    spec = next(t for t in load_suite("default").trials if t.trial_id == "mockup-p2-v4-mockup_laser-n0")
+    spec = next(t for t in load_suite("classic").trials if t.trial_id == "mockup-p2-v4-mockup_laser-n0")
     p = prepare_scene(spec, None)
     assert p.change_truth.features["sphere.ball"].label == "altered"
     cfg = sensor_for(spec)
@@ -195,7 +195,7 @@ def test_a_pose_free_along_a_wall_is_placed_by_agreement_but_not_claimed():
     from recognition.describe import DescribeParams, describe
     from sensors.simulate import Simulator
 
-    spec = next(t for t in load_suite("default").trials if t.trial_id == "factory_bay-p0-v2-kinect_like-n0")
+    spec = next(t for t in load_suite("classic").trials if t.trial_id == "factory_bay-p0-v2-kinect_like-n0")
     p = prepare_scene(spec, None)
     cfg = sensor_for(spec)
     scan, truth = trial_scan(spec, p, cfg, trial_viewpoints(spec, p, cfg).viewpoints[0].T_world_sensor)

@@ -209,13 +209,32 @@ def test_compare_rules_and_exit_codes(tmp_path, capsys):
     assert main(["compare", str(tmp_path / "base"), str(tmp_path / "missing")]) == 2
 
 
-def test_shipped_suites_load():
-    for name in ("smoke", "default"):
+def test_shipped_suites_load_and_keep_every_seed_below_100000():
+    from harness.suite import shipped_suites
+
+    for name in shipped_suites():
         suite = load_suite(name)
         assert suite.trials and suite.methods["core"] is not None
         assert len({t.trial_id for t in suite.trials}) == len(suite.trials)
-    groups = {t.group for t in load_suite("default").trials}
-    assert {"mockup/mockup_laser", "factory_bay/factory_scanner", "factory_bay/kinect_like"} <= groups
+        for t in suite.trials:  # seeds from 100000 on are scenes no shipped suite holds
+            assert max(t.suite_seed, t.perturbation_seed, t.noise_seed, t.viewpoint, t.scene_seed or 0) < 100_000
+
+
+def test_default_is_broad_and_calibration_uses_other_seeds_of_the_same_families():
+    default, calibration = load_suite("default"), load_suite("calibration")
+    groups = {t.group for t in default.trials}
+    assert groups == {"mockup/mockup_laser", "factory/factory_scanner", "factory/kinect_like"}
+    scanner, kinect = ({t.scene for t in default.trials if t.group == g}
+                       for g in ("factory/factory_scanner", "factory/kinect_like"))
+    assert not scanner & kinect  # the Kinect-like group looks at other bays
+    for g in groups:
+        trials = [t for t in default.trials if t.group == g]
+        assert len({t.scene for t in trials}) >= 8
+        assert all(len({t.perturbation_seed for t in trials if t.scene == s}) >= 2 for s in {t.scene for t in trials})
+    assert {t.group for t in calibration.trials} == groups
+    for key in ("scene", "perturbation_seed"):
+        assert not {getattr(t, key) for t in default.trials} & {getattr(t, key) for t in calibration.trials}, key
+    assert len(load_suite("full").trials) >= 500
 
 
 def test_store_writes_atomically_and_cleans_temporaries(tmp_path):
