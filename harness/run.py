@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from harness.execute import failed_record, run_dask, run_local
-from harness.provenance import provenance
+from harness.provenance import CodeIdentity, code_identity, describe_code, provenance
 from harness.store import RunDirectory, non_finite_paths, write_json_atomic
 from harness.suite import Suite, TrialSpec
 from harness.summary import summarise
@@ -33,6 +33,11 @@ class RunOptions:
     timeout_s: float | None = None
     progress: bool | None = None  # None: a progress bar on a terminal, log lines otherwise
     overwrite: bool = False
+    resume_any_code: bool = False  # with resume: complete a run made by other code (run.json says so)
+
+
+class CodeMismatchError(ValueError):
+    """``--resume`` of a run directory whose run.json or trial records were made by other code."""
 
 
 class Progress:
@@ -68,9 +73,16 @@ def run_suite(suite: Suite, out: Path, options: RunOptions = RunOptions(), log: 
 
     Finished trials are written one by one as they complete; on Ctrl-C the children are killed, the
     summary of what finished is written, and KeyboardInterrupt propagates. ``resume`` skips trials already
-    recorded with the same configuration hash.
+    recorded with the same configuration hash, and refuses (:class:`CodeMismatchError`) when ``run.json`` or a
+    record it would keep was made by other code (DESIGN 11.4), unless ``resume_any_code``: then ``run.json``
+    lists every code identity the run mixes under ``mixed_codes``.
+
+    The code identity (:func:`harness.provenance.code_identity`) is computed once, here, and written into
+    ``run.json``, the summary's provenance and every trial record (``code``) as it is written.
     """
     config_hash = suite.config_hash
+    code = code_identity()
+    code_json = code.as_json()
     specs: list[TrialSpec] = list(suite.trials)
     if options.only:
         unknown = sorted(set(options.only) - {t.trial_id for t in specs})
@@ -79,6 +91,7 @@ def run_suite(suite: Suite, out: Path, options: RunOptions = RunOptions(), log: 
         specs = [t for t in specs if t.trial_id in options.only]
     with RunDirectory(out) as run_dir:
         done = run_dir.finished(config_hash) if options.resume else set()
+        mixed = resume_codes(run_dir, done, code, options.resume_any_code) if options.resume else []
         todo = [t for t in specs if t.trial_id not in done]
         existing = sorted(run_dir.trials_dir.glob("*.json"))
         if existing and not options.resume:
@@ -87,10 +100,13 @@ def run_suite(suite: Suite, out: Path, options: RunOptions = RunOptions(), log: 
                                       "that run, --overwrite to discard it, or another --out")
             for p in existing:
                 p.unlink()
-        prov = provenance()
-        write_json_atomic(out / "run.json", {"schema": "harness.run/1", "suite": suite.name, "source": suite.source,
-                                             "config_hash": config_hash, "suite_config": suite.raw,
-                                             "trials": [t.trial_id for t in suite.trials], "provenance": prov})
+        prov = provenance(code)
+        manifest = {"schema": "harness.run/1", "suite": suite.name, "source": suite.source,
+                    "config_hash": config_hash, "code": code_json, "suite_config": suite.raw,
+                    "trials": [t.trial_id for t in suite.trials], "provenance": prov}
+        if mixed:
+            manifest["mixed_codes"] = prov["mixed_codes"] = mixed
+        write_json_atomic(out / "run.json", manifest)
         workers = options.workers or os.cpu_count() or 1
         timeout = options.timeout_s or suite.timeout_s
         artifacts_root = out / "artifacts"
@@ -106,10 +122,12 @@ def run_suite(suite: Suite, out: Path, options: RunOptions = RunOptions(), log: 
             by_id = {t.trial_id: t for t in todo}
             for record in _execute(todo, suite, options, workers, timeout, str(run_dir.cache_dir), artifacts):
                 record["config_hash"] = config_hash
+                record["code"] = code_json
                 try:
                     run_dir.write_trial(record)
                 except (ValueError, TypeError) as exc:  # NaN or an odd type in the record: a failed trial, explained
                     record = _unwritable(by_id[record["trial_id"]], record, exc, config_hash)
+                    record["code"] = code_json
                     run_dir.write_trial(record)
                 progress.update(record)
         finally:
@@ -123,6 +141,49 @@ def run_suite(suite: Suite, out: Path, options: RunOptions = RunOptions(), log: 
                                         "run": _throughput(records, progress.done, wall, workers)})
                 write_json_atomic(out / "summary.json", summary)
     return summary
+
+
+def resume_codes(run_dir: RunDirectory, kept: set[str], code: CodeIdentity, any_code: bool) -> list[Any]:
+    """The code identities a resumed run would mix, checked before anything runs.
+
+    Parameters
+    ----------
+    kept : ids of the trial records the resumed run keeps (the others are run again, so their code is moot).
+    code : this process's code identity.
+    any_code : accept other code (``--resume-any-code``) instead of refusing.
+
+    Returns
+    -------
+    [] when ``run.json`` (and the identities it already lists as mixed) and every kept record carry ``code``;
+    otherwise the distinct ``code`` entries of the run, this code last (None: a record or run.json written
+    before code identities).
+
+    Raises
+    ------
+    CodeMismatchError
+        When other code made them and ``any_code`` is false: one line naming both identities.
+    """
+    found: list[tuple[str, Any]] = []
+    manifest = run_dir.read_manifest()
+    if manifest is not None:
+        earlier = manifest.get("mixed_codes")
+        found += [("run.json", c) for c in earlier] if isinstance(earlier, list) else []
+        found.append(("run.json", manifest.get("code")))
+    found += [(f"trial record {t}", c) for t, c in run_dir.recorded_codes(kept).items()]
+    others = [(where, c) for where, c in found if CodeIdentity.from_json(c) != code]
+    if not others:
+        return []
+    if not any_code:
+        where, other = others[0]
+        more = f" (and {len(others) - 1} more)" if len(others) > 1 else ""
+        raise CodeMismatchError(f"{run_dir.root}: --resume refused: its {where}{more} was made by other code "
+                                f"({describe_code(other)}) than this ({code.describe()}); use another --out, "
+                                "or --resume-any-code to mix them")
+    distinct: list[Any] = []
+    for _, c in [*found, ("this run", code.as_json())]:
+        if all(CodeIdentity.from_json(c) != CodeIdentity.from_json(d) for d in distinct):
+            distinct.append(c)
+    return [d for d in distinct if CodeIdentity.from_json(d) != code] + [code.as_json()]
 
 
 @contextlib.contextmanager

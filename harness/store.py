@@ -4,8 +4,9 @@ and the run's manifest.
 Layout::
 
     RUN_DIR/
-      run.json                 suite, config hash, provenance, the list of trial ids
-      trials/<trial_id>.json   one per finished (or failed) trial, written as temp file + rename
+      run.json                 suite, config hash, code identity, provenance, the list of trial ids
+      trials/<trial_id>.json   one per finished (or failed) trial, written as temp file + rename; each
+                               carries the config hash and the code identity of the run that wrote it
       summary.json             aggregate (DESIGN 8), rewritten atomically at the end
       cache/                   per-scene derived data (perturbed scenes), safe to delete
       .lock                    held while a run writes here
@@ -160,6 +161,26 @@ class RunDirectory:
             if isinstance(rec, dict) and rec.get("config_hash") == config_hash and not rec.get("retryable"):
                 done.add(rec.get("trial_id", p.stem))
         return done
+
+    def recorded_codes(self, trial_ids: set[str] | list[str]) -> dict[str, Any]:
+        """The code identity (``code`` entry, None if absent) of each readable record among ``trial_ids``."""
+        out = {}
+        for t in sorted(trial_ids):
+            try:
+                rec = read_json(self.trial_path(t))
+            except (OSError, ValueError):
+                continue
+            if isinstance(rec, dict):
+                out[t] = rec.get("code")
+        return out
+
+    def read_manifest(self) -> dict[str, Any] | None:
+        """``run.json``, or None when absent or unreadable."""
+        try:
+            data = read_json(self.root / "run.json")
+        except (OSError, ValueError):
+            return None
+        return data if isinstance(data, dict) else None
 
     def write_trial(self, record: dict[str, Any]) -> None:
         write_json_atomic(self.trial_path(record["trial_id"]), record)

@@ -1,8 +1,10 @@
-"""What moved between a base run and a candidate run, for the report's regression section.
+"""What moved between a base run and a candidate run, for the report's regression section and for
+``harness compare``'s text.
 
-The verdicts (pass/fail per metric, DESIGN 10.9) are ``harness compare``'s; ``harness report`` passes its rows
-in. This module provides the headline metrics with their direction and the plain deltas between two summaries,
-reusable by any caller that has two ``summary.json`` dicts.
+The verdicts (DESIGN 10.9, 11.3) are :mod:`evaluation.verdicts`'s, one implementation: ``harness report``
+passes the :class:`~evaluation.verdicts.Comparison` that ``harness compare`` prints, and both show its figures
+through :func:`figure_cells` and :func:`move_cells`. Without a comparison the report shows the plain deltas of
+the headline metrics (:func:`headline_deltas`), reusable by any caller that has two ``summary.json`` dicts.
 """
 
 from __future__ import annotations
@@ -10,6 +12,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
+
+from evaluation.verdicts import ALL, FAILING, Comparison, FigureVerdict, TrialMove
 
 
 @dataclass(frozen=True)
@@ -111,3 +115,45 @@ def headline_deltas(base: Mapping[str, Any], candidate: Mapping[str, Any], metho
                      "label": m.label, "base": b, "candidate": c, "delta": delta, "direction": m.direction,
                      "better": better})
     return rows
+
+
+# -- verdict rows, shared by ``harness compare`` and the report ----------------------------------------------------
+HEADLINE_HEADER = ("method", "metric", "scope", "base", "candidate", "delta", "95 % interval of delta", "verdict")
+MOVES_HEADER = ("trial", "scene", "moved", "figures (base -> candidate)")
+
+
+def _num(x: float | None, digits: int) -> str:
+    return "n/a" if x is None else f"{x:.{digits}f}"
+
+
+def figure_cells(f: FigureVerdict) -> tuple[str, ...]:
+    """One verdict row as text (:data:`HEADLINE_HEADER`); a counted failure is in capitals, and a verdict
+    beyond tolerance that had no interval says so."""
+    d = f.metric.digits
+    ci = "" if f.interval is None else f"[{f.interval[0]:+.{d}f}, {f.interval[1]:+.{d}f}]"
+    unit = f" {f.metric.unit}" if f.metric.unit else ""
+    verdict = f.verdict.upper() if f.verdict in FAILING and f.counted else f.verdict
+    if f.verdict in ("regression", "improved") and f.interval is None and f.metric.kind in ("rate", "error"):
+        verdict += " (tolerance alone)"
+    delta = "" if f.delta is None else f"{f.delta:+.{d}f}"
+    return (f.method, f.metric.label + unit, f.scope, _num(f.base, d), _num(f.candidate, d), delta, ci, verdict)
+
+
+def shown_figures(comparison: Comparison, counted: bool) -> list[FigureVerdict]:
+    """The rows of the headline table (``counted``: the counted methods, every scope) or of the other methods'
+    table (their pooled figures, and a group's only when its verdict is not ``pass``; no ``n/a`` rows)."""
+    out = []
+    for f in comparison.figures:
+        if f.counted != counted:
+            continue
+        if not counted and (f.verdict == "n/a" or (f.scope != ALL and f.verdict == "pass")):
+            continue
+        out.append(f)
+    return out
+
+
+def move_cells(m: TrialMove) -> tuple[str, str, str, str]:
+    """One row of "what changed most" (:data:`MOVES_HEADER`)."""
+    figures = m.status or "; ".join(f"{x.label} {_num(x.base, x.digits)} -> {_num(x.candidate, x.digits)}"
+                                    for x in m.moves)
+    return m.trial_id, m.scene, f"{m.score:.3f}", figures

@@ -7,8 +7,9 @@ is shown bare, never with an interval made up here.
 :func:`render_report` reads ``summary.json``, ``run.json`` and ``trials/*.json`` (never logs), builds a
 :class:`reports.document.Document` and writes it twice. A stage whose summary section is null is shown as
 "not built yet", never left out and never filled in. The gallery pictures and the regression verdicts come
-from the caller (``harness report`` re-runs the gallery trials and runs ``harness compare``), so this package
-never runs the simulator nor re-implements the regression rules.
+from the caller (``harness report`` re-runs the gallery trials and hands in ``harness compare``'s
+:class:`evaluation.verdicts.Comparison`), so this package never runs the simulator nor re-implements the
+regression rules.
 """
 
 from __future__ import annotations
@@ -24,12 +25,24 @@ from pathlib import Path
 from typing import Any
 
 from evaluation.attribution import attribute, largest_losses
+from evaluation.verdicts import Comparison
 from reports import figures
 from reports.colours import CHANGE_COLOURS, CHANGE_LABELS, CLASS_COLOURS, CLASSES
 from reports.document import Cell, Code, Document, GalleryTrial, Grid, Image, Note, Para, Section, Table
 from reports.html import render_html
 from reports.markdown import render_markdown
-from reports.regression import HEADLINE, Metric, Missing, headline_deltas, lookup, lookup_interval
+from reports.regression import (
+    HEADLINE,
+    MOVES_HEADER,
+    Metric,
+    Missing,
+    figure_cells,
+    headline_deltas,
+    lookup,
+    lookup_interval,
+    move_cells,
+    shown_figures,
+)
 
 HOOVER_RATES = ("correct_detection_rate", "over_rate", "under_rate", "missed_rate", "noise_rate")
 HOOVER_HEAD = ("correct", "over", "under", "missed", "noise")
@@ -206,6 +219,9 @@ def worst_trials(records: Sequence[Mapping[str, Any]], n: int, method: str = "co
 def overview_section(run: RunData) -> Section:
     s, prov = run.summary, run.summary.get("provenance") or run.run.get("provenance") or {}
     rinfo = s.get("run") or {}
+    codes = run.run.get("mixed_codes") or prov.get("mixed_codes")
+    mixed = [("mixed code", "resumed with --resume-any-code over records of: " + "; ".join(map(code_text, codes)))
+             ] if codes else []
     rows = [
         ("suite", str(s.get("suite", "?"))),
         ("suite file", str(run.run.get("source", "n/a"))),
@@ -215,6 +231,8 @@ def overview_section(run: RunData) -> Section:
         ("methods", ", ".join(f"{m} ({METHOD_NOTES.get(m, 'peer method')})" for m in run.methods)),
         ("package version", str(s.get("version", prov.get("version", "n/a")))),
         ("git commit", str(prov.get("git_commit") or "n/a")),
+        ("code identity", code_text(run.run.get("code") or prov.get("code"))),
+        *mixed,
         ("python", str(prov.get("python", "n/a"))),
         ("libraries", ", ".join(f"{k} {v}" for k, v in (prov.get("libraries") or {}).items()) or "n/a"),
         ("machine", ", ".join(f"{k} {v}" for k, v in (prov.get("machine") or {}).items()) or "n/a"),
@@ -242,6 +260,21 @@ def overview_section(run: RunData) -> Section:
         blocks.insert(0, Note(f"Incomplete run: {s.get('n_trials')} of {s.get('n_planned')} trials finished; "
                               "figures cover the finished trials only.", "warn"))
     return Section("run", "Run and reproduction", blocks)
+
+
+def code_text(code: Any) -> str:
+    """A run's code identity (``run.json`` ``code``, DESIGN 11.4) in one line: the commit and the hash of the
+    uncommitted diff of the packages (or of their files outside git), and the plug-ins' versions."""
+    if not isinstance(code, Mapping) or not (code.get("commit") or code.get("source_sha256")):
+        return "n/a (not recorded)"
+    if code.get("commit"):
+        diff = code.get("diff_sha256")
+        text = f"commit {str(code['commit'])[:12]}, " + (f"uncommitted diff sha256 {str(diff)[:12]}" if diff
+                                                          else "no uncommitted change")
+    else:
+        text = f"no git checkout, source sha256 {str(code['source_sha256'])[:12]}"
+    plugins = code.get("plugins") or {}
+    return text + "; plug-ins: " + (", ".join(f"{k} {v}" for k, v in sorted(plugins.items())) or "none")
 
 
 def headline_section(run: RunData) -> Section:
@@ -796,18 +829,20 @@ def gallery_section(gallery: Sequence[GalleryTrial] | None) -> Section:
 
 
 def regression_section(run: RunData, base: Mapping[str, Any], base_name: str,
-                       comparison: Sequence[Mapping[str, Any]] | None) -> Section:
-    """What moved against the baseline run, by how much, and (with ``comparison`` rows from ``harness compare``)
-    pass or fail."""
+                       comparison: Comparison | None) -> Section:
+    """What moved against the baseline run, by how much, and (with the ``comparison`` of ``harness compare``,
+    :mod:`evaluation.verdicts`) the verdict: the same headline table, verdict line and trials that moved most."""
     blocks: list[Any] = []
     if comparison is not None:
-        bad = [r for r in comparison if r.get("verdict") in ("regression", "missing")]
-        if bad:
-            blocks.append(Note(f"{len(bad)} regression(s) against {base_name} ({len(comparison)} metrics compared "
-                               "by the rules of harness compare).", "fail"))
-        else:
-            blocks.append(Note(f"No regression against {base_name} ({len(comparison)} metrics compared by the rules "
+        text = comparison.verdict_text()
+        if comparison.passed:
+            blocks.append(Note(f"No regression against {base_name}{text.removeprefix('no regression')} (the rules "
                                "of harness compare).", "pass"))
+        else:
+            blocks.append(Note(f"Against {base_name}: {text} (the rules of harness compare).", "fail"))
+        if comparison.uncounted_line():
+            blocks.append(Note(comparison.uncounted_line(), "info"))
+        blocks += [Note(n, "warn" if n.startswith("compared with --force") else "info") for n in comparison.notes]
     else:
         blocks.append(Note("Deltas only: no pass/fail verdicts were supplied (run 'harness report RUN_DIR "
                            "--baseline BASE' or 'harness compare BASE RUN_DIR' for them).", "info"))
@@ -819,8 +854,12 @@ def regression_section(run: RunData, base: Mapping[str, Any], base_name: str,
         (Cell("run"), Cell(base_name), Cell(str(run.root))),
         (Cell("suite"), Cell(str(base.get("suite"))), Cell(str(run.summary.get("suite")))),
         (Cell("git commit"), Cell(str(bprov.get("git_commit") or "n/a")), Cell(str(cprov.get("git_commit") or "n/a"))),
+        (Cell("code identity"), Cell(code_text(bprov.get("code"))),
+         Cell(code_text(run.run.get("code") or cprov.get("code")))),
         (Cell("trials (failed)"), Cell(f"{base.get('n_trials')} ({base.get('n_failed')})"),
          Cell(f"{run.summary.get('n_trials')} ({run.summary.get('n_failed')})")))))
+    if comparison is not None:
+        return Section("regression", "Regression against the baseline", blocks + _verdict_blocks(comparison))
     rows = []
     for meth in run.methods:
         if meth != "core" and meth not in (base.get("baselines") or {}):
@@ -837,24 +876,37 @@ def regression_section(run: RunData, base: Mapping[str, Any], base_name: str,
     blocks.append(Table(("method", "metric", "baseline", "this run", "change", "better"), tuple(rows),
                         caption="Headline metrics: all of the core's, the peers' where they moved "
                                 "(green: better, red: worse)"))
-    if comparison is not None:
-        order = {"regression": 0, "missing": 1, "improved": 2, "new": 3}
-        moved = [r for r in comparison if r.get("verdict") in order]
-        moved.sort(key=lambda r: (order[r["verdict"]], -abs(r.get("delta") or 0.0), r["metric"]))
-        shown = moved[:60]
-        if shown:
-            blocks.append(Table(("metric", "baseline", "this run", "change", "better", "verdict"), tuple(
-                (Cell(r["metric"]), Cell(fmt(r.get("base"), 4), "num"), Cell(fmt(r.get("candidate"), 4), "num"),
-                 Cell("" if r.get("delta") is None else f"{r['delta']:+.4g}", "num"), Cell(r.get("direction", "")),
-                 Cell(r["verdict"].upper() if r["verdict"] in ("regression", "missing") else r["verdict"],
-                      "bad" if r["verdict"] in ("regression", "missing") else "good" if r["verdict"] == "improved"
-                      else "")) for r in shown),
-                caption="Metrics beyond tolerance (regressions first)" + (
-                    f"; {len(moved) - len(shown)} more not shown" if len(moved) > len(shown) else "")))
-        n_ok = sum(1 for r in comparison if r.get("verdict") == "ok")
-        blocks.append(Para(f"{n_ok} metric(s) within tolerance; {sum(1 for r in comparison if not r.get('verdict'))} "
-                           "reported without a rule (counts, settings, times unless --check-time)."))
     return Section("regression", "Regression against the baseline", blocks)
+
+
+_VERDICT_STYLE = {"regression": "bad", "missing": "bad", "improved": "good"}
+
+
+def _verdict_blocks(comparison: Comparison) -> list[Any]:
+    """The headline verdict table, the other methods' and the trials that moved most, as ``harness compare``
+    prints them (:func:`reports.regression.figure_cells`)."""
+    def rows(figs: Sequence[Any]) -> tuple[tuple[Cell, ...], ...]:
+        out = []
+        for f in figs:
+            cells = figure_cells(f)
+            style = _VERDICT_STYLE.get(f.verdict, "") if f.counted else ""
+            out.append((*(Cell(c) for c in cells[:3]), *(Cell(c, "num") for c in cells[3:7]), Cell(cells[7], style)))
+        return tuple(out)
+
+    header = ("method", "metric", "scope", "baseline", "this run", "change", "95 % interval of change", "verdict")
+    blocks: list[Any] = [Table(header, rows(shown_figures(comparison, True)), caption=(
+        f"Headline metrics of {', '.join(comparison.counted_methods)}, pooled and per group; the interval is of the "
+        f"paired per-trial change, {comparison.n_scenes} scene(s) resampled, {comparison.n_pairs} trial(s) paired "
+        "by id. A change beyond its tolerance whose interval excludes 0 is a regression; one whose interval "
+        "reaches 0 is within noise."))]
+    others = shown_figures(comparison, False)
+    if others:
+        blocks.append(Table(header, rows(others), caption=f"Other methods ({', '.join(comparison.reported_methods)}),"
+                            " reported only: pooled, and a group where it is not pass"))
+    if comparison.moves:
+        blocks.append(Table(MOVES_HEADER, tuple(tuple(Cell(c) for c in move_cells(m)) for m in comparison.moves),
+                            caption="What changed most: the core's figures per trial, paired by trial id"))
+    return blocks
 
 
 def _delta_value(v: float | None, summary: Mapping[str, Any], m: Metric, method: str) -> Cell:
@@ -876,7 +928,7 @@ def failures_section(run: RunData) -> Section:
 # -- the document and the files -----------------------------------------------------------------------------
 def build_document(run: RunData, baseline: Mapping[str, Any] | None = None, baseline_name: str = "",
                    gallery: Sequence[GalleryTrial] | None = None,
-                   comparison: Sequence[Mapping[str, Any]] | None = None) -> Document:
+                   comparison: Comparison | None = None) -> Document:
     """The report of ``run`` as a document tree (see :mod:`reports.document`)."""
     s = run.summary
     when = _dt.datetime.fromtimestamp((run.root / "summary.json").stat().st_mtime, _dt.UTC)
@@ -912,7 +964,7 @@ def _write_atomic(path: Path, text: str) -> None:
 
 def render_report(run_dir: str | Path, baseline_dir: str | Path | None = None,
                   gallery: Sequence[GalleryTrial] | None = None,
-                  comparison: Sequence[Mapping[str, Any]] | None = None) -> tuple[Path, Path]:
+                  comparison: Comparison | None = None) -> tuple[Path, Path]:
     """Write ``report.html`` and ``report.md`` into ``run_dir``.
 
     Parameters
@@ -920,8 +972,8 @@ def render_report(run_dir: str | Path, baseline_dir: str | Path | None = None,
     run_dir : a run directory (``summary.json``, ``run.json``, ``trials/``).
     baseline_dir : another run directory (or its summary.json) to compare against: adds the regression section.
     gallery : pictures of selected trials (``harness report`` re-runs them); None: no gallery.
-    comparison : ``harness compare`` rows ``{metric, base, candidate, delta, direction, verdict}`` for the
-        regression section's pass/fail; without them the section shows deltas only.
+    comparison : ``harness compare``'s verdict (:class:`evaluation.verdicts.Comparison`) for the regression
+        section's pass/fail; without it the section shows deltas only.
 
     Returns
     -------

@@ -280,6 +280,8 @@ def test_gallery_is_rendered_with_its_pictures_and_notes(full_report):
 
 
 def test_regression_section_with_and_without_verdicts(tmp_path):
+    from harness.compare import compare_dirs, format_comparison, load_run
+
     base = write_run(tmp_path / "base", make_records(pose=False, change=False))
     records = make_records(pose=False, change=False)
     for r in records:
@@ -287,13 +289,15 @@ def test_regression_section_with_and_without_verdicts(tmp_path):
     cand = write_run(tmp_path / "cand", records)
     html = render_report(cand, base)[0].read_text()
     assert 'id="regression"' in html and "Deltas only" in html
-    rows = [{"metric": "classification.accuracy", "base": 0.8, "candidate": 0.7, "delta": -0.1,
-             "direction": "higher", "verdict": "regression"},
-            {"metric": "segmentation.over_rate", "base": 0.1, "candidate": 0.1, "delta": 0.0, "direction": "lower",
-             "verdict": "ok"}]
-    html, md = (p.read_text() for p in render_report(cand, base, comparison=rows))
-    assert "1 regression(s)" in html and "REGRESSION" in html and "**FAIL:**" in md
-    html = render_report(cand, base, comparison=rows[1:])[0].read_text()
+    worse = compare_dirs(load_run(base), load_run(cand))  # harness compare's verdict, handed in
+    html, md = (p.read_text() for p in render_report(cand, base, comparison=worse))
+    assert not worse.passed and "**FAIL:**" in md and "REGRESSION" in html
+    assert escape_md(f"{worse.verdict_text()} (the rules of harness compare)") in md
+    # the same row as harness compare prints (one implementation of the verdicts and their cells)
+    cli = format_comparison(worse, "base", "cand", "md")
+    row = next(line for line in cli.splitlines() if line.startswith("| core | classification accuracy | all |"))
+    assert row.endswith("| -0.154 |  | REGRESSION (tolerance alone) |") and row in md
+    html = render_report(cand, base, comparison=compare_dirs(load_run(base), load_run(base)))[0].read_text()
     assert "No regression" in html and 'class="note pass"' in html
 
 

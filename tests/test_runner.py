@@ -148,6 +148,92 @@ def test_an_existing_run_is_neither_mixed_nor_lost(tiny_suite, tmp_path):
         _run(tiny_suite, out, only=("nope",), resume=True)
 
 
+def test_code_identity_of_a_checkout_and_of_a_plain_tree(tmp_path):
+    import shutil
+
+    from harness.provenance import CodeIdentity, code_identity
+
+    repo = tmp_path / "repo"
+    for rel, text in (("recognition/fit.py", "x = 1\n"), ("harness/cli.py", "y = 2\n"), ("docs/a.md", "doc\n")):
+        (repo / rel).parent.mkdir(parents=True, exist_ok=True)
+        (repo / rel).write_text(text)
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@example.org", "-c", "commit.gpgsign=false"]
+    for args in (["init", "-q"], ["add", "."], ["commit", "-qm", "c"]):
+        subprocess.run([*git, *args], check=True, capture_output=True)
+    head = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
+    clean = code_identity(repo)
+    assert clean == CodeIdentity(head) and clean.as_json() == {"commit": head, "diff_sha256": None,
+                                                               "source_sha256": None, "plugins": {}}
+    (repo / "recognition" / "fit.py").write_text("x = 2\n")  # a change under recognition/
+    changed = code_identity(repo)
+    assert changed.commit == head and len(changed.diff_sha256) == 64 and code_identity(repo) == changed
+    assert "(clean)" in clean.describe() and f"uncommitted diff {changed.diff_sha256[:12]}" in changed.describe()
+    (repo / "recognition" / "fit.py").write_text("x = 3\n")
+    assert code_identity(repo).diff_sha256 not in (None, changed.diff_sha256)
+    (repo / "recognition" / "fit.py").write_text("x = 1\n")
+    assert code_identity(repo) == clean
+    (repo / "docs" / "a.md").write_text("other\n")  # outside the packages: the same code
+    assert code_identity(repo) == clean
+    (repo / "recognition" / "new.py").write_text("z = 0\n")  # untracked under a package: other code
+    assert code_identity(repo).diff_sha256 is not None
+    tree = tmp_path / "tree"  # no git checkout: a hash of the packages' files
+    shutil.copytree(repo, tree, ignore=shutil.ignore_patterns(".git"))
+    plain = code_identity(tree)
+    assert plain.commit is None and len(plain.source_sha256) == 64 and "no git checkout" in plain.describe()
+    (tree / "recognition" / "fit.py").write_text("x = 9\n")
+    assert code_identity(tree).source_sha256 != plain.source_sha256
+    assert CodeIdentity.from_json(plain.as_json()) == plain and CodeIdentity.from_json(None) is None
+
+
+def test_resume_refuses_other_code_unless_resume_any_code(tiny_suite, tmp_path, monkeypatch, capsys):
+    import dataclasses
+
+    import harness.run as runner
+    from harness.provenance import code_identity
+    from reports.render import code_text, render_report
+
+    here = code_identity()  # fixed for the test: other engineers may edit the tree meanwhile
+    edited = dataclasses.replace(here, diff_sha256="5" * 64)  # what an edit under recognition/ gives
+    calls = []
+
+    def identity(code):
+        def compute():
+            calls.append(code)
+            return code
+        return compute
+
+    out = tmp_path / "r"
+    argv = ["bench", "--suite", str(tiny_suite), "--out", str(out), "--workers", "1", "--no-report",
+            "--progress", "log"]
+    first = "mockup-p0-v0-tiny_sensor-n0"
+    monkeypatch.setattr(runner, "code_identity", identity(here))
+    assert main([*argv, "--only", first]) == 0 and calls == [here]  # once per run, in the parent
+    record = json.loads((out / "trials" / f"{first}.json").read_text())
+    manifest = json.loads((out / "run.json").read_text())
+    assert record["code"] == manifest["code"] == here.as_json() and manifest["code"]["plugins"] == {}
+    assert "mixed_codes" not in manifest
+    assert json.loads((out / "summary.json").read_text())["provenance"]["code"] == here.as_json()
+
+    monkeypatch.setattr(runner, "code_identity", identity(edited))
+    capsys.readouterr()
+    assert main([*argv, "--resume"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith(f"harness: error: {out}: --resume refused: its ")
+    assert f"({here.describe()}) than this ({edited.describe()})" in err and "--resume-any-code" in err
+    assert [p.name for p in (out / "trials").glob("*.json")] == [f"{first}.json"]  # nothing ran
+
+    assert main([*argv, "--resume-any-code"]) == 0
+    manifest = json.loads((out / "run.json").read_text())
+    assert manifest["code"] == edited.as_json() and manifest["mixed_codes"] == [here.as_json(), edited.as_json()]
+    codes = {p.stem: json.loads(p.read_text())["code"] for p in (out / "trials").glob("*.json")}
+    assert codes.pop(first) == here.as_json()  # kept, not rerun
+    assert len(codes) == 2 and all(c == edited.as_json() for c in codes.values())
+    assert main([*argv, "--resume"]) == 2  # a mixed run stays refused without --resume-any-code
+    md = render_report(out)[1].read_text()
+    assert f"| code identity | {code_text(edited.as_json())} |" in md
+    assert "| mixed code | resumed with --resume-any-code" in md
+
+
 @pytest.mark.parametrize("edit, message", [
     ("methods: {core: {}, paper: {}}", "methods: {magic: {}}"),
     ("sensor: tiny_sensor.yaml", "sensor: no_such_preset"),
@@ -203,7 +289,10 @@ def test_compare_rules_and_exit_codes(tmp_path, capsys):
     assert main(["compare", str(tmp_path / "base"), str(tmp_path / "base")]) == 0
     assert main(["compare", str(tmp_path / "base"), str(tmp_path / "worse"), "--format", "md"]) == 1
     out = capsys.readouterr().out
-    assert "| classification.accuracy | 0.95 | 0.9 | -0.05 | higher | REGRESSION |" in out and "FAIL" in out
+    # summaries alone (no trial records): no interval, the tolerance alone decides, and says so
+    assert "| core | classification accuracy | all | 0.950 | 0.900 | -0.050 |  | REGRESSION (tolerance alone) |" in out
+    assert out.rstrip().endswith("**FAIL: 1 regression(s) in 6 headline metric(s) of core: core classification "
+                                 "accuracy (regression: all)**")
     (tmp_path / "junk.json").write_text("{not json")
     assert main(["compare", str(tmp_path / "base"), str(tmp_path / "junk.json")]) == 2
     assert main(["compare", str(tmp_path / "base"), str(tmp_path / "missing")]) == 2

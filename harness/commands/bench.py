@@ -21,7 +21,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"shipped suite name ({', '.join(shipped_suites())}) or a suite YAML file")
     parser.add_argument("--out", type=Path, help="results directory (default: runs/<suite>-<timestamp>)")
     parser.add_argument("--workers", type=int, help="local worker processes (default: all cores)")
-    parser.add_argument("--resume", action="store_true", help="complete an interrupted run, skipping finished trials")
+    parser.add_argument("--resume", action="store_true",
+                        help="complete an interrupted run, skipping finished trials; refused (exit 2) when its "
+                             "run.json or records were made by other code (another commit or uncommitted diff)")
+    parser.add_argument("--resume-any-code", action="store_true",
+                        help="--resume even when other code made the run so far; run.json then lists the mixed "
+                             "code identities (mixed_codes)")
     parser.add_argument("--overwrite", action="store_true", help="discard the trial records already in --out")
     parser.add_argument("--only", action="append", default=[], metavar="TRIAL_ID", help="run only this trial")
     parser.add_argument("--artifacts", action="store_true", help="write per-trial images and range data")
@@ -45,10 +50,10 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--timeout must be > 0, got {args.timeout}")
     suite = load_suite(args.suite)
     out = args.out or Path("runs") / f"{suite.name}-{time.strftime('%Y%m%d-%H%M%S')}"
-    options = RunOptions(workers=args.workers, resume=args.resume, only=tuple(args.only), artifacts=args.artifacts,
-                         scheduler=args.scheduler, dask_local=args.dask_local, timeout_s=args.timeout,
-                         progress={"auto": None, "bar": True, "log": False}[args.progress],
-                         overwrite=args.overwrite)
+    options = RunOptions(workers=args.workers, resume=args.resume or args.resume_any_code, only=tuple(args.only),
+                         artifacts=args.artifacts, scheduler=args.scheduler, dask_local=args.dask_local,
+                         timeout_s=args.timeout, progress={"auto": None, "bar": True, "log": False}[args.progress],
+                         overwrite=args.overwrite, resume_any_code=args.resume_any_code)
     summary = run_suite(suite, out, options)
     if not args.no_report:
         _report(out)

@@ -1,7 +1,9 @@
 """``harness report RUN_DIR [--baseline OTHER_RUN_DIR]``: write RUN_DIR/report.html and RUN_DIR/report.md.
 
 The gallery's trials (worst first) are re-run from their records to draw their pictures (DESIGN 10.14);
-with ``--baseline`` the regression section carries ``harness compare``'s verdicts.
+with ``--baseline`` the regression section carries ``harness compare``'s verdicts (the same
+:class:`evaluation.verdicts.Comparison`; runs that differ in suite, seeds or trials are compared anyway, with a
+warning in the section).
 """
 
 from __future__ import annotations
@@ -11,7 +13,10 @@ import dataclasses
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from evaluation.verdicts import Comparison
 
 NAME = "report"
 HELP = "render a run's evaluation report (report.html, report.md), optionally against a baseline run"
@@ -28,16 +33,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--check-time", action="store_true", help="also apply the (relative) time rules")
 
 
-def comparison_rows(base_dir: Path, run_dir: Path, tolerances: Path | None = None, check_time: bool = False
-                    ) -> list[dict[str, Any]]:
-    """``harness compare``'s rows (base = ``base_dir``, candidate = ``run_dir``) as plain dicts."""
-    from harness.compare import TOLERANCES_DIR, Tolerances, compare, load_summary
+def comparison(base_dir: Path, run_dir: Path, tolerances: Path | None = None, check_time: bool = False
+               ) -> Comparison:
+    """``harness compare``'s verdict (base = ``base_dir``, candidate = ``run_dir``), with ``--force``: a report
+    says how the runs differ rather than refusing."""
+    from harness.compare import TOLERANCES_DIR, Tolerances, compare_dirs, load_run
 
     tol = Tolerances.load(tolerances or TOLERANCES_DIR / "default.yaml")
     if check_time:
         tol = dataclasses.replace(tol, check_time=True)
-    rows = compare(load_summary(base_dir), load_summary(run_dir), tol)
-    return [{**dataclasses.asdict(r), "delta": r.delta} for r in rows]
+    return compare_dirs(load_run(base_dir), load_run(run_dir), tol, force=True)
 
 
 def write_report(run_dir: Path, baseline: Path | None = None, gallery: int = DEFAULT_GALLERY,
@@ -51,9 +56,9 @@ def write_report(run_dir: Path, baseline: Path | None = None, gallery: int = DEF
         raise ValueError(f"--gallery must be >= 0, got {gallery}")
     run = load_run(run_dir)  # fails early on a directory that is not a run
     methods = (run.run.get("suite_config") or {}).get("methods") or {"core": {}}
-    comparison = comparison_rows(baseline, run_dir, tolerances, check_time) if baseline is not None else None
+    verdict = comparison(baseline, run_dir, tolerances, check_time) if baseline is not None else None
     pictures = build_gallery(run.records, methods, run_dir / "cache", gallery, log) if gallery else None
-    return render_report(run_dir, baseline, pictures, comparison)
+    return render_report(run_dir, baseline, pictures, verdict)
 
 
 def run(args: argparse.Namespace) -> int:
