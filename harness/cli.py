@@ -15,7 +15,7 @@ import sys
 
 from scenes.config import ConfigError
 
-COMMANDS = ("scene", "sense", "bench", "compare", "report", "describe")
+COMMANDS = ("scene", "sense", "bench", "compare", "report", "results", "describe")
 
 
 def build_parser() -> argparse.ArgumentParser:
