@@ -15,11 +15,14 @@ import sys
 
 from scenes.config import ConfigError
 
-COMMANDS = ("scene", "sense", "bench", "compare", "report", "results", "describe")
+DESCRIPTION = ("Simulate range scans of a partially correct factory model, run the recognition core of Fillatreau "
+               "& Fisher on them and score every stage against the truth.")
+COMMANDS = ("scene", "sense", "bench", "show", "compare", "report", "results", "describe")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="harness", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="harness", description=DESCRIPTION,
+                                     epilog="Run 'harness COMMAND --help' for a command's options.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         try:

@@ -87,7 +87,12 @@ def run_suite(suite: Suite, out: Path, options: RunOptions = RunOptions(), log: 
     if options.only:
         unknown = sorted(set(options.only) - {t.trial_id for t in specs})
         if unknown:
-            raise ValueError(f"--only: no trial {unknown[0]!r} in suite {suite.name!r}")
+            import difflib
+
+            close = difflib.get_close_matches(unknown[0], [t.trial_id for t in specs], n=3, cutoff=0.6)
+            hint = f" (closest: {', '.join(close)})" if close else ""
+            raise ValueError(f"--only: no trial {unknown[0]!r} in suite {suite.name!r}{hint}; "
+                             f"`harness bench --suite {suite.name} --list` lists its {len(specs)} trials")
         specs = [t for t in specs if t.trial_id in options.only]
     with RunDirectory(out) as run_dir:
         done = run_dir.finished(config_hash) if options.resume else set()

@@ -117,8 +117,19 @@ def test_sense_command_errors(tmp_path, capsys):
     assert main(["sense", *base, "--sensor", str(sensor), "--position", "0.5", "0", "0.3", "--look-at",
                  "0", "0", "0"]) == 2
     assert "inside the geometry of 'tank.s'" in capsys.readouterr().err
-    assert main(["sense", *base, "--sensor", str(sensor)]) == 2
-    assert "has no pose" in capsys.readouterr().err
+    assert main(["sense", *base, "--sensor", str(sensor), "--sensor-pose"]) == 2
+    assert "has no pose in its file" in capsys.readouterr().err
+
+
+def test_sense_without_a_pose_draws_a_viewpoint_that_sees_the_scene(tmp_path):
+    from harness.cli import main
+
+    scene = tmp_path / "bay.yaml"
+    assert main(["scene", "generate", "--family", "factory", "--seed", "1000", "--out", str(scene)]) == 0
+    assert main(["sense", str(scene), "--sensor", "factory_scanner", "--seed", "1", "--out", str(tmp_path / "o")]) == 0
+    summary = json.loads((tmp_path / "o" / "scan.json").read_text())
+    assert summary["viewpoint_seed"] == 0 and summary["viewpoint"]["target_feature"]
+    assert sum(s["pixels"] >= 200 for s in summary["surfaces_seen"]) >= 4 and summary["valid_fraction"] > 0.3
 
 
 def test_viewpoints_seeded_and_reject_poor_views(demo):

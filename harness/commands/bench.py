@@ -36,6 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-report", action="store_true", help="do not render report.html / report.md")
     parser.add_argument("--progress", choices=("auto", "bar", "log"), default="auto",
                         help="a progress bar (bar), one line per trial (log), or a bar on a terminal only (auto)")
+    parser.add_argument("--list", action="store_true",
+                        help="print the suite's trials (id, group, scene, seeds, sensor) without running anything")
     parser.add_argument("--allow-failures", action="store_true",
                         help=f"exit 0 even when trials failed (default: exit {EXIT_TRIALS_FAILED} after writing "
                              "every record, the summary and the report)")
@@ -49,6 +51,9 @@ def run(args: argparse.Namespace) -> int:
     if args.timeout is not None and not args.timeout > 0:
         raise ValueError(f"--timeout must be > 0, got {args.timeout}")
     suite = load_suite(args.suite)
+    if args.list:
+        print(trial_list(suite))
+        return 0
     out = args.out or Path("runs") / f"{suite.name}-{time.strftime('%Y%m%d-%H%M%S')}"
     options = RunOptions(workers=args.workers, resume=args.resume or args.resume_any_code, only=tuple(args.only),
                          artifacts=args.artifacts, scheduler=args.scheduler, dask_local=args.dask_local,
@@ -108,3 +113,20 @@ def why_missing(summary: dict, section: str) -> str:
     if section == "classification":
         return f"no patch of >= {(sec or {}).get('min_patch_pixels', 200)} pixels was described"
     return "no trial scored it"
+
+
+def trial_list(suite) -> str:
+    """One line per trial of ``suite``: its id and what it is, then the count per group."""
+    rows = [("trial id", "group", "scene", "perturbation", "view", "sensor", "noise", "overrides")]
+    for t in suite.trials:
+        ov = ",".join(f"{k}={v:g}" for k, v in sorted(t.overrides.items()))
+        rows.append((t.trial_id, t.group, t.scene, str(t.perturbation_seed), str(t.viewpoint), Path(t.sensor).stem,
+                     str(t.noise_seed), ov or "-"))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() for r in rows]
+    groups: dict[str, int] = {}
+    for t in suite.trials:
+        groups[t.group] = groups.get(t.group, 0) + 1
+    lines.append(f"suite {suite.name}: {len(suite.trials)} trials, {len({t.scene for t in suite.trials})} scenes; "
+                 + "; ".join(f"{g}: {n}" for g, n in groups.items()))
+    return "\n".join(lines)

@@ -32,7 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"sensor preset ({', '.join(preset_names())}) or sensor YAML file")
     pose = parser.add_mutually_exclusive_group()
     pose.add_argument("--viewpoint-seed", type=int, metavar="N",
-                      help="draw the viewpoint with this seed (default: the sensor file's pose)")
+                      help="draw the viewpoint with this seed, as a suite does (default: 0)")
+    pose.add_argument("--sensor-pose", action="store_true",
+                      help="use the pose written in the sensor file instead of drawing one")
     pose.add_argument("--position", type=float, nargs=3, metavar=("X", "Y", "Z"), help="sensor position (m)")
     parser.add_argument("--look-at", type=float, nargs=3, metavar=("X", "Y", "Z"),
                         help="point the sensor looks at (with --position)")
@@ -56,7 +58,8 @@ def run(args: argparse.Namespace) -> int:
         from scenes.geometry import look_at
 
         T = look_at(args.position, args.look_at)
-    elif args.viewpoint_seed is not None:
+    elif not args.sensor_pose:  # a sampled viewpoint sees the scene; a preset's pose fits one scene only
+        args.viewpoint_seed = 0 if args.viewpoint_seed is None else args.viewpoint_seed
         sample = sample_viewpoints(sim, scene, config.model, 1, np.random.default_rng(args.viewpoint_seed),
                                    ViewpointSpec())
         if not sample.viewpoints:
@@ -67,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     elif config.T_world_sensor is not None:
         T = config.T_world_sensor
     else:
-        raise ValueError(f"sensor {config.name!r} has no pose: give --viewpoint-seed N or --position/--look-at")
+        raise ValueError(f"sensor {config.name!r} has no pose in its file: leave out --sensor-pose to draw one")
     t1 = time.perf_counter()
     scan, truth = sim.simulate(config, T, np.random.default_rng(args.seed))
     scan_s = time.perf_counter() - t1
