@@ -100,6 +100,7 @@ def run_isolated(spec: TrialSpec, plan: TrialPlan, timeout_s: float, cache_dir: 
     from harness.trial import prepare_scene
 
     _import_numerics()
+    _large_malloc_thresholds()  # the scene is prepared here, in the (Dask worker's) own process
     t_prepare = time.perf_counter()
     try:
         prepared = prepare_scene(spec, Path(cache_dir) if cache_dir else None)

@@ -113,6 +113,8 @@ def run_suite(suite: Suite, out: Path, options: RunOptions = RunOptions(), log: 
             manifest["mixed_codes"] = prov["mixed_codes"] = mixed
         write_json_atomic(out / "run.json", manifest)
         workers = options.workers or os.cpu_count() or 1
+        # what runs the trials: local worker threads, the LocalCluster's workers, or (a remote cluster) unknown
+        executors = options.dask_local if options.dask_local else None if options.scheduler else workers
         timeout = options.timeout_s or suite.timeout_s
         artifacts_root = out / "artifacts"
 
@@ -143,7 +145,7 @@ def run_suite(suite: Suite, out: Path, options: RunOptions = RunOptions(), log: 
                 summary = summarise(records, suite=suite.name, config_hash=config_hash, version=prov["version"],
                                     methods=list(suite.methods), oracles=list(suite.oracles), extra={
                                         "complete": complete, "n_planned": len(specs), "provenance": prov,
-                                        "run": _throughput(records, progress.done, wall, workers)})
+                                        "run": _throughput(records, progress.done, wall, executors)})
                 write_json_atomic(out / "summary.json", summary)
     return summary
 
@@ -219,9 +221,10 @@ def _unwritable(spec: TrialSpec, record: dict, exc: Exception, config_hash: str)
     return failed
 
 
-def _throughput(records: list[dict], n_run: int, wall: float, workers: int) -> dict[str, Any]:
+def _throughput(records: list[dict], n_run: int, wall: float, workers: int | None) -> dict[str, Any]:
     """Wall time, trials per minute, and the runner's overhead: the share of the workers' time spent
-    neither preparing scenes nor inside trials (fork, transfer, writing, scheduling)."""
+    neither preparing scenes nor inside trials (fork, transfer, writing, scheduling). ``workers``: how many
+    run trials at once (None for a remote Dask cluster, whose size the runner does not own: no overhead)."""
     work = sum((r.get("timing_s") or {}).get("total") or 0.0 for r in records)
     prepare = sum((r.get("timing_s") or {}).get("prepare") or 0.0 for r in records)
     isolated = sum((r.get("timing_s") or {}).get("isolated") or 0.0 for r in records)
@@ -230,7 +233,7 @@ def _throughput(records: list[dict], n_run: int, wall: float, workers: int) -> d
             "trial_work_s": work, "prepare_s": prepare,
             "isolation_overhead_fraction": (isolated - work) / work if work > 0 else None,
             "overhead_fraction": (wall * min(workers, max(n_run, 1)) - work - prepare) / work
-            if work > 0 and n_run == len(records) else None}
+            if workers and work > 0 and n_run == len(records) else None}
 
 
 def _execute(todo, suite, options, workers, timeout, cache_dir, artifacts):
