@@ -43,12 +43,9 @@ from evaluation.classification import (
     reliability_table,
 )
 from evaluation.intervals import CalibrationGap, MeanOfRatios, Ratio, Resampling
+from evaluation.metrics import HOOVER_RATES, MACRO_LABELS, MIN_SCORED_PIXELS, PER_LABEL_ORDER
 
-HOOVER_RATES = ("correct_detection_rate", "over_rate", "under_rate", "missed_rate", "noise_rate")
-CHANGE_LABELS = ("moved", "missing", "new", "altered", "unchanged")
-MIN_PATCH_PIXELS = 200
 CI_SUFFIX = "_ci95"
-MACRO_LABELS = ("moved", "missing", "new", "altered")
 RELIABILITY_BINS = 10
 
 
@@ -121,7 +118,7 @@ def _pooled_size_class(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def aggregate_classification(trials: list[dict[str, Any]], min_pixels: int = MIN_PATCH_PIXELS,
+def aggregate_classification(trials: list[dict[str, Any]], min_pixels: int = MIN_SCORED_PIXELS,
                              resampling: Resampling | None = None) -> dict[str, Any]:
     """Pooled over the patches of ``min_pixels`` pixels or more of every trial; with ``resampling`` (one item
     per trial) the intervals of accuracy, Brier score, ECE and per-class precision and recall."""
@@ -236,7 +233,7 @@ def aggregate_pose(trials: list[dict[str, Any]], resampling: Resampling | None =
     return out
 
 
-def prf(truth: Sequence[str], predicted: Sequence[str], labels: Sequence[str] = CHANGE_LABELS) -> dict[str, Any]:
+def prf(truth: Sequence[str], predicted: Sequence[str], labels: Sequence[str] = PER_LABEL_ORDER) -> dict[str, Any]:
     """Per-label precision, recall, F1 and support; macro-F1 over moved, missing, new, altered (DESIGN 10.7)."""
     t = np.asarray(truth, dtype=object)
     p = np.asarray(predicted, dtype=object)
@@ -249,12 +246,12 @@ def prf(truth: Sequence[str], predicted: Sequence[str], labels: Sequence[str] = 
         rec = tp / n_true if n_true else None
         f1 = 2 * prec * rec / (prec + rec) if prec and rec else (0.0 if (n_pred or n_true) else None)
         per[lab] = {"precision": prec, "recall": rec, "f1": f1, "support": n_true}
-    scored = [per[lab]["f1"] for lab in ("moved", "missing", "new", "altered") if per[lab]["f1"] is not None]
+    scored = [per[lab]["f1"] for lab in MACRO_LABELS if lab in per and per[lab]["f1"] is not None]
     return {"macro_f1": float(np.mean(scored)) if scored else None, "per_label": per}
 
 
 def prf_intervals(scores: dict[str, Any], truth: Sequence[str], predicted: Sequence[str], rs: Resampling,
-                  labels: Sequence[str] = CHANGE_LABELS) -> dict[str, Any]:
+                  labels: Sequence[str] = PER_LABEL_ORDER) -> dict[str, Any]:
     """:func:`prf`'s result with intervals beside macro-F1 and each label's precision, recall and F1.
 
     Per scene and label the sufficient statistics are tp, n_pred and n_true; F1 is then the ratio

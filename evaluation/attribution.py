@@ -4,7 +4,8 @@ each stage explains.
 An oracle replaces one stage's output by the truth; the difference between a figure under that oracle and
 end to end is what that stage costs the figure (e.g. classification accuracy 0.91 end to end and 0.97 with
 the truth segmentation: 0.06 comes from segmentation). Shares are of the end-to-end gap to the ideal value
-(1 for rates, 0 for errors).
+(1 for rates, 0 for errors). The figures and their directions are the headline metrics of
+:mod:`evaluation.metrics`.
 """
 
 from __future__ import annotations
@@ -12,15 +13,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-#: (path in the summary, label, direction, ideal value)
-FIGURES = (
-    (("segmentation", "correct_detection_rate"), "segmentation correct detection", "higher", 1.0),
-    (("classification", "accuracy"), "classification accuracy", "higher", 1.0),
-    (("pose", "success_rate"), "pose success rate", "higher", 1.0),
-    (("pose", "rotation_error_deg", "median"), "pose rotation error median (deg)", "lower", 0.0),
-    (("pose", "translation_error_mm", "median"), "pose translation error median (mm)", "lower", 0.0),
-    (("change", "macro_f1"), "change macro-F1", "higher", 1.0),
-)
+from evaluation import metrics
+from evaluation.metrics import Metric
+
+
+def figures() -> tuple[Metric, ...]:
+    """The figures attributed: the headline metrics of a method that have an ideal value
+    (:mod:`evaluation.metrics`)."""
+    return tuple(m for m in metrics.judged() if m.ideal is not None)
+
+
+def _name(m: Metric) -> str:
+    return f"{m.title} ({m.unit})" if m.unit else m.title
 #: the summary sections downstream of the stage each oracle replaces
 AFFECTS = {"segmentation": ("classification", "pose", "change"), "classification": ("pose", "change"),
            "pairing": ("pose", "change"), "pose": ("change",)}
@@ -34,6 +38,7 @@ class Attribution:
 
     figure: str
     direction: str
+    ideal: float
     end_to_end: float | None
     with_oracle: dict[str, float | None]
     cost: dict[str, float | None]  # in the figure's units, positive = the stage makes it worse
@@ -52,7 +57,8 @@ def attribute(summary: dict[str, Any]) -> list[Attribution]:
     """Attribution rows for every figure that some oracle can explain (oracles upstream of the figure)."""
     oracles = summary.get("oracles") or {}
     rows = []
-    for path, label, direction, ideal in FIGURES:
+    for m in figures():
+        path, label, direction, ideal = m.path, _name(m), m.direction, m.ideal
         upstream = [o for o in oracles if path[0] in AFFECTS.get(o, ())]
         if not upstream:
             continue
@@ -62,7 +68,7 @@ def attribute(summary: dict[str, Any]) -> list[Attribution]:
         gap = None if e2e is None else sign * (ideal - e2e)
         cost = {o: (None if e2e is None or v is None else sign * (v - e2e)) for o, v in values.items()}
         share = {o: (None if c is None or not gap else c / gap) for o, c in cost.items()}
-        rows.append(Attribution(label, direction, e2e, values, cost, share))
+        rows.append(Attribution(label, direction, ideal, e2e, values, cost, share))
     return rows
 
 
@@ -80,5 +86,5 @@ def largest_losses(rows: list[Attribution]) -> dict[str, str]:
             out[o] = f"{what} costs no downstream figure measurably on this suite."
         else:
             out[o] = (f"{what} costs most on {r.figure}: {r.end_to_end:.3g} end to end, {r.with_oracle[o]:.3g} with "
-                      f"its truth ({100 * share:.0f} % of the gap to {'1' if r.direction == 'higher' else '0'}).")
+                      f"its truth ({100 * share:.0f} % of the gap to {r.ideal:g}).")
     return out

@@ -16,12 +16,14 @@ from typing import Any
 
 import numpy as np
 
-from recognition.change import LABELS, ChangeResult
-from recognition.verify import Prediction, pixels_by_feature
+from evaluation.metrics import MIN_SCORED_PIXELS
+from recognition.change import ChangeResult
+from recognition.localisation import Prediction, pixels_by_feature
 from scenes.perturb import ChangeTruth
+from scenes.vocabulary import CHANGE_MAP_LABELS, NEW
 from sensors.range_image import FLAG_DROPOUT, ScanTruth
 
-MIN_PIXELS = 200
+MIN_PIXELS = MIN_SCORED_PIXELS  # features showing fewer pixels are not observable (evaluation.metrics)
 
 
 def observable_features(truth: ScanTruth, change_truth: ChangeTruth, apriori_at_truth: Prediction,
@@ -74,7 +76,7 @@ def change_section(result: ChangeResult, truth: ScanTruth, change_truth: ChangeT
         observable = observable_features(truth, change_truth, apriori_at_truth, min_pixels)
     actual_pix = _measured_pixels_by_feature(truth)
     label_map = result.label_map.reshape(-1)
-    new_idx = LABELS.index("new")
+    new_idx = CHANGE_MAP_LABELS.index(NEW)  # the core's change map indexes the shared labels
     features = []
     for fid, t in sorted(observable.items()):
         if t == "new":

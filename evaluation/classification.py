@@ -11,7 +11,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-CLASSES = ("PLAN", "CYL", "SPH", "CONE", "OTH")
+from scenes.vocabulary import CLASSES
+
+__all__ = ["CLASSES", "confusion_matrix", "accuracy", "per_class", "brier_score", "reliability_table",
+           "expected_calibration_error"]
 
 
 def confusion_matrix(truth: Sequence[str], predicted: Sequence[str], classes: Sequence[str] = CLASSES) -> np.ndarray:

@@ -39,6 +39,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.ndimage as ndi
 
+from evaluation.metrics import HOOVER_RATES
+
 __all__ = [
     "CORRECT",
     "OVER",
@@ -418,9 +420,8 @@ def connected_truth_regions(surface_id_image: np.ndarray, connectivity: int = 4)
 
 def mean_scores(scores: Sequence[HooverScore]) -> dict[str, float]:
     """Rates averaged over images (NaN rates skipped), as the summary reports them."""
-    keys = ("correct_detection_rate", "over_rate", "under_rate", "missed_rate", "noise_rate")
     out: dict[str, float] = {}
-    for k in keys:
+    for k in HOOVER_RATES:
         v = np.array([getattr(s, k) for s in scores], dtype=np.float64)
         v = v[np.isfinite(v)]
         out[k] = float(v.mean()) if v.size else float("nan")

@@ -14,12 +14,13 @@ from dataclasses import replace
 import numpy as np
 
 from evaluation.patches import patch_truth, truth_regions
-from recognition import primitives
-from recognition.classify import CLASSES, PatchClassification
+from recognition import fitting as primitives
+from recognition.classification import PatchClassification
 from recognition.describe import SceneDescription
+from recognition.fitting import fit_plane_lsq
 from recognition.segmentation import Patch, Segmentation, SurfaceType
-from recognition.surface_fit import fit_plane as fit_plane_lsq
 from scenes.perturb import ChangeTruth
+from scenes.vocabulary import CLASSES
 from sensors.range_image import Scan, ScanTruth
 
 ORACLES = ("segmentation", "classification", "pairing", "pose")

@@ -15,13 +15,15 @@ from evaluation.hoover import (
     overlap_table,
     score_table,
 )
+from evaluation.metrics import HOOVER_RATES, MIN_SCORED_PIXELS
 from scenes.features import Cone, Cylinder, Sphere
 from scenes.model import SceneModel
 from sensors.range_image import FLAG_MIXED, FLAG_OUTLIER, ScanTruth
 
 TOLERANCE = 0.8
-MIN_TRUTH_PIXELS = 200
-SIZE_BINS = (200, 500, 1000, 5000)  # lower edges (pixels) of the truth-region size classes; the last is open
+MIN_TRUTH_PIXELS = MIN_SCORED_PIXELS  # truth regions of fewer pixels are not scored (evaluation.metrics)
+#: lower edges (pixels) of the truth-region size classes; the last is open
+SIZE_BINS = (MIN_SCORED_PIXELS, 500, 1000, 5000)
 TRUTH_CLASSES = ("correct", "over", "under", "missed")
 
 
@@ -52,9 +54,7 @@ def segmentation_section(labels: np.ndarray, truth: ScanTruth, valid: np.ndarray
     out["missed_causes"] = {k: (v / score.n_truth if score.n_truth else None) for k, v in causes.items()}
     out["n_machine"] = int(score.n_machine)
     out["by_size"] = counts_by_size(regions, score)
-    out["sweep"] = [{"tolerance": float(t), **{k: _finite(getattr(s, k)) for k in
-                                                ("correct_detection_rate", "over_rate", "under_rate", "missed_rate",
-                                                 "noise_rate")}}
+    out["sweep"] = [{"tolerance": float(t), **{k: _finite(getattr(s, k)) for k in HOOVER_RATES}}
                     for t, s in ((t, score_table(table, float(t), MIN_TRUTH_PIXELS)) for t in DEFAULT_SWEEP)]
     return out
 

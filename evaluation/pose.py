@@ -14,7 +14,8 @@ from collections.abc import Collection
 
 import numpy as np
 
-from recognition.pose import AxisPair, PlanePair, PointPair, free_dof_of, residuals
+from evaluation.metrics import MIN_SCORED_PIXELS
+from recognition.localisation import AxisPair, PlanePair, PointPair, free_dof_of, residuals
 from scenes.features import Cone, Cylinder, Plane, Sphere, Torus
 from scenes.geometry import invert_transform
 from scenes.model import SceneModel
@@ -137,8 +138,9 @@ def changed_features(changes: ChangeTruth) -> set[str]:
         set(changes.new_features)
 
 
-def constrains_pose(truth: ScanTruth, model: SceneModel, min_pixels: int = 200, *, sigma_angle: float = 0.01,
-                    sigma_pos_m: float = 0.01, max_sigma: float = 0.1, exclude: Collection[str] = ()) -> bool:
+def constrains_pose(truth: ScanTruth, model: SceneModel, min_pixels: int = MIN_SCORED_PIXELS, *,
+                    sigma_angle: float = 0.01, sigma_pos_m: float = 0.01, max_sigma: float = 0.1,
+                    exclude: Collection[str] = ()) -> bool:
     """Whether the truth surfaces visible with >= ``min_pixels`` constrain all 6 DOF of the pose.
 
     ``exclude`` names features that cannot locate the sensor against the a priori model: those the

@@ -3,11 +3,12 @@
 
 What is judged
 --------------
-The verdict is on the *headline metrics* (:data:`HEADLINE_METRICS`) of each method, pooled over the run
-(scope ``all``) and per group, plus the number of failed trials (:data:`N_FAILED`, pooled only) and, when
-asked (``Tolerances.check_time``), the median time per trial (:data:`TIME`, pooled only). Every other
-numeric leaf of ``summary.json`` (p90 and max of the errors, per-class and per-label figures, counts,
-oracles...) is informative only: it never fails a comparison.
+The verdict is on the *headline metrics* of :mod:`evaluation.metrics` (``headline=True``, where every metric
+is declared once): those of each method (:func:`evaluation.metrics.judged`, :data:`HEADLINE_METRICS` in the
+shipped declarations), pooled over the run (scope ``all``) and per group, plus those of the run, pooled only:
+the number of failed trials (:data:`N_FAILED`) and, when asked (``Tolerances.check_time``), the median time
+per trial (:data:`TIME`). Every other numeric leaf of ``summary.json`` (p90 and max of the errors, per-class
+and per-label figures, counts, oracles...) is informative only: it never fails a comparison.
 
 A metric counts once: the figures of one (method, metric) over its scopes make one :class:`MetricVerdict`,
 failing when any of its scopes fails (a group is what a per-preset target means, DESIGN 10.5), and listed
@@ -22,11 +23,13 @@ The verdict of one figure (:func:`decide`), ``b`` the base's value, ``c`` the ca
    when the section is there but has nothing to score for this figure (no patch of 200 pixels, no
    constrained trial...).
 2. ``b`` absent: ``new`` when ``c`` is present, ``n/a`` when neither is (both pass).
-3. Beyond the tolerance (``harness/tolerances/*.yaml``, :class:`Tolerances`): a rate (higher is better) is
-   *worse* when ``b - c > rate_drop`` (a per-metric allowance replaces ``rate_drop``); an error or the Brier
-   score (lower is better) is worse when ``c > b (1 + error_growth) + error_floor``; *better* is the mirror
-   image (``c - b > rate_drop``; ``c < b (1 - error_growth) - error_floor``). Failed trials are worse when
-   ``c - b > n_failed_increase``, better when ``c < b``; time when ``c > b (1 + time_growth) + time_floor_s``.
+3. Beyond the tolerance (``harness/tolerances/*.yaml``, :class:`Tolerances`), by the metric's declared rule
+   (:data:`evaluation.metrics.RULES`): a ``rate`` is *worse* when it moved the bad way by more than
+   ``rate_drop`` (``b - c`` for a higher-is-better rate; a per-metric allowance replaces ``rate_drop``); an
+   ``error`` (lower is better) is worse when ``c > b (1 + error_growth) + error_floor``; *better* is the mirror
+   image (``c - b > rate_drop``; ``c < b (1 - error_growth) - error_floor``). A ``count`` (failed trials) is
+   worse when ``c - b > n_failed_increase``, better when ``c < b``; a ``time`` when
+   ``c > b (1 + time_growth) + time_floor_s``.
 4. Worse beyond the tolerance: ``regression`` when the interval lies wholly on the bad side of zero
    (``hi < 0`` for a rate, ``lo > 0`` for an error; an end exactly at zero does not exclude it), or when there
    is no interval (no trial records, fewer than two scenes, failed trials, times): the tolerance alone then
@@ -58,8 +61,7 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.aggregate import MACRO_LABELS, MIN_PATCH_PIXELS
-from evaluation.classification import CLASSES
+from evaluation import metrics
 from evaluation.intervals import (
     DEFAULT_BOOTSTRAP,
     BootstrapParams,
@@ -71,7 +73,9 @@ from evaluation.intervals import (
     Statistic,
     interval,
 )
+from evaluation.metrics import MACRO_LABELS, MIN_SCORED_PIXELS, Metric
 from scenes.config import Fields, load_yaml
+from scenes.vocabulary import CLASSES
 
 ALL = "all"  # the scope of the whole run
 FAILING = ("missing", "regression")
@@ -90,7 +94,8 @@ class Tolerances:
     ----------
     per_metric : an allowance for one figure, by its dotted path in ``summary.json``
         (``classification.accuracy``, ``groups.<g>.pose.success_rate``, ``baselines.paper.change.macro_f1``);
-        a path without ``groups.``/``baselines.`` applies to every scope and method without their own.
+        a path without ``groups.``/``baselines.`` applies to every scope and method without their own. Its
+        key must name a metric declared in :mod:`evaluation.metrics`.
     """
 
     rate_drop: float = 0.02
@@ -120,6 +125,11 @@ class Tolerances:
             check_time=f.boolean("check_time", False),
             per_metric={str(k): per.number(str(k), nonnegative=True) for k in per.data},
         )
+        for k in per.data:
+            try:
+                metrics.check_allowance_key(str(k))
+            except KeyError as exc:
+                raise per.error(str(k), exc.args[0]) from None
         f.check_unknown()
         return t
 
@@ -132,46 +142,11 @@ class Tolerances:
 DEFAULT_TOLERANCES = Tolerances()
 
 
-# -- the headline metrics -----------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class VerdictMetric:
-    """A figure the verdict is on.
-
-    Attributes
-    ----------
-    key : its dotted path in a method's sections of ``summary.json`` (``pose.rotation_error_deg.median``).
-    kind : ``rate`` (absolute tolerance), ``error`` (relative tolerance), ``count`` (failed trials) or
-        ``time``; only rates and errors have per-trial statistics, hence a paired interval.
-    """
-
-    key: str
-    label: str
-    direction: str  # "higher" or "lower" is better
-    kind: str
-    digits: int = 3
-    unit: str = ""
-
-    @property
-    def path(self) -> tuple[str, ...]:
-        return tuple(self.key.split("."))
-
-    @property
-    def section(self) -> str:
-        return self.path[0]
-
-
-HEADLINE_METRICS: tuple[VerdictMetric, ...] = (
-    VerdictMetric("segmentation.correct_detection_rate", "segmentation correct detection", "higher", "rate"),
-    VerdictMetric("classification.accuracy", "classification accuracy", "higher", "rate"),
-    VerdictMetric("classification.brier", "classification Brier score", "lower", "error"),
-    VerdictMetric("pose.success_rate", "pose success", "higher", "rate"),
-    VerdictMetric("pose.success_rate_constrained", "pose success, constrained", "higher", "rate"),
-    VerdictMetric("pose.rotation_error_deg.median", "rotation error, median", "lower", "error", 3, "deg"),
-    VerdictMetric("pose.translation_error_mm.median", "translation error, median", "lower", "error", 1, "mm"),
-    VerdictMetric("change.macro_f1", "change macro-F1", "higher", "rate"),
-)
-N_FAILED = VerdictMetric("n_failed", "failed trials", "lower", "count", 0)
-TIME = VerdictMetric("timing_s.total.median", "time per trial, median", "lower", "time", 2, "s")
+# -- the headline metrics (declared in evaluation.metrics) ------------------------------------------------------
+#: The headline metrics of each method in the shipped declarations (:func:`evaluation.metrics.judged`).
+HEADLINE_METRICS: tuple[Metric, ...] = metrics.judged()
+N_FAILED = metrics.metric("n_failed")
+TIME = metrics.metric("timing_s.total.median")
 
 
 # -- per-trial sufficient statistics --------------------------------------------------------------------------
@@ -181,7 +156,7 @@ def _hoover(sec: Mapping[str, Any]) -> tuple[float, float]:
 
 
 def _kept_patches(sec: Mapping[str, Any]) -> list[Mapping[str, Any]]:
-    return [p for p in sec.get("patches") or [] if p.get("n_pixels", 0) >= MIN_PATCH_PIXELS]
+    return [p for p in sec.get("patches") or [] if p.get("n_pixels", 0) >= MIN_SCORED_PIXELS]
 
 
 def _accuracy(sec: Mapping[str, Any]) -> tuple[float, float]:
@@ -231,7 +206,7 @@ def _cluster_sums(values: np.ndarray, cluster: np.ndarray, n_clusters: int) -> n
     return out
 
 
-def pooled_statistic(metric: VerdictMetric, sections: Sequence[Mapping[str, Any] | None], cluster: np.ndarray,
+def pooled_statistic(metric: Metric, sections: Sequence[Mapping[str, Any] | None], cluster: np.ndarray,
                      n_clusters: int) -> Statistic | None:
     """The pooled figure ``metric`` of some trials as per-cluster sufficient statistics.
 
@@ -271,7 +246,7 @@ def pooled_statistic(metric: VerdictMetric, sections: Sequence[Mapping[str, Any]
     return None
 
 
-def trial_figure(metric: VerdictMetric, section: Mapping[str, Any] | None) -> float | None:
+def trial_figure(metric: Metric, section: Mapping[str, Any] | None) -> float | None:
     """A trial's own value of ``metric`` (its accuracy over its patches, its macro-F1 over its features...);
     None when the trial does not define it."""
     if section is None:
@@ -332,7 +307,7 @@ def method_section(record: Mapping[str, Any], method: str, stage: str) -> Mappin
     return sec if isinstance(sec, Mapping) else None
 
 
-def paired_interval(metric: VerdictMetric, method: str, pairs: Sequence[TrialPair], clusters: Clusters
+def paired_interval(metric: Metric, method: str, pairs: Sequence[TrialPair], clusters: Clusters
                     ) -> tuple[float | None, Interval | None]:
     """The delta (candidate - base) of ``metric`` of ``method`` over ``pairs`` and its paired cluster-bootstrap
     interval over ``clusters`` (which must hold the pairs' scenes).
@@ -357,28 +332,33 @@ def paired_interval(metric: VerdictMetric, method: str, pairs: Sequence[TrialPai
 
 
 # -- the rule ---------------------------------------------------------------------------------------------
-def tolerance_side(metric: VerdictMetric, base: float, candidate: float, tol: Tolerances,
+def tolerance_side(metric: Metric, base: float, candidate: float, tol: Tolerances,
                    allowed: float | None = None) -> int:
     """-1 when ``candidate`` is worse than ``base`` beyond the tolerance, +1 better beyond it, 0 within it
-    (rule 3 of the module docstring); ``allowed``: a per-metric allowance."""
+    (rule 3 of the module docstring, for the metric's declared rule and direction; the shipped counts, errors
+    and times are lower-is-better, a higher-is-better one is judged in the mirror image); ``allowed``: a
+    per-metric allowance."""
     b, c = base, candidate
-    if metric.kind == "count":
+    sign = -1 if metric.direction == "higher" else 1  # on the lower-is-better scale: worse = larger
+    if metric.rule == "count":
         limit = tol.n_failed_increase if allowed is None else allowed
-        return -1 if c - b > limit + _EPS else (1 if c < b - _EPS else 0)
-    if metric.kind == "time":
+        up = sign * (c - b)
+        return -1 if up > limit + _EPS else (1 if up < -_EPS else 0)
+    if metric.rule == "time":
         growth = tol.time_growth if allowed is None else allowed
-        return -1 if c > b * (1 + growth) + tol.time_floor_s else 0
-    if metric.kind == "rate":
+        worse = c > b * (1 + growth) + tol.time_floor_s if sign > 0 else c < b * (1 - growth) - tol.time_floor_s
+        return -1 if worse else 0
+    if metric.rule == "rate":
         drop = tol.rate_drop if allowed is None else allowed
-        bad = (b - c) if metric.direction == "higher" else (c - b)
+        bad = sign * (c - b)
         return -1 if bad > drop + _EPS else (1 if -bad > drop + _EPS else 0)
     growth = tol.error_growth if allowed is None else allowed
-    if c > b * (1 + growth) + tol.error_floor:
-        return -1
-    return 1 if c < b * (1 - growth) - tol.error_floor else 0
+    grew, shrank = c > b * (1 + growth) + tol.error_floor, c < b * (1 - growth) - tol.error_floor
+    worse, better = (grew, shrank) if sign > 0 else (shrank, grew)
+    return -1 if worse else (1 if better else 0)
 
 
-def decide(metric: VerdictMetric, base: float | None, candidate: float | None, ci: Interval | None,
+def decide(metric: Metric, base: float | None, candidate: float | None, ci: Interval | None,
            tol: Tolerances, *, lost: bool = False, allowed: float | None = None) -> tuple[str, str]:
     """The verdict of one figure and why (the rules of the module docstring).
 
@@ -422,7 +402,7 @@ class FigureVerdict:
 
     method: str
     scope: str
-    metric: VerdictMetric
+    metric: Metric
     base: float | None
     candidate: float | None
     interval: Interval | None
@@ -448,7 +428,7 @@ class MetricVerdict:
     and the scopes that carry it."""
 
     method: str
-    metric: VerdictMetric
+    metric: Metric
     verdict: str
     scopes: tuple[str, ...]
     counted: bool
@@ -458,7 +438,7 @@ class MetricVerdict:
         return self.counted and self.verdict in FAILING
 
     def describe(self) -> str:
-        return f"{self.method} {self.metric.label} ({self.verdict}: {', '.join(self.scopes)})"
+        return f"{self.method} {self.metric.title} ({self.verdict}: {', '.join(self.scopes)})"
 
 
 @dataclass(frozen=True)
@@ -517,7 +497,7 @@ class Comparison:
         for word in ("within noise", "improved"):
             hits = [m for m in counted if m.verdict == word]
             if hits:
-                text += f"; {word}: " + "; ".join(f"{m.method} {m.metric.label} ({', '.join(m.scopes)})"
+                text += f"; {word}: " + "; ".join(f"{m.method} {m.metric.title} ({', '.join(m.scopes)})"
                                                   for m in hits)
         return text
 
@@ -562,7 +542,7 @@ def methods_of(*summaries: Mapping[str, Any]) -> list[str]:
     return ["core", *sorted(peers, key=lambda m: (m != "paper", m))]
 
 
-def figure_verdict(metric: VerdictMetric, method: str, scope: str, base: Mapping[str, Any],
+def figure_verdict(metric: Metric, method: str, scope: str, base: Mapping[str, Any],
                    candidate: Mapping[str, Any], pairs: Sequence[TrialPair], clusters: Clusters | None,
                    tol: Tolerances, counted: bool) -> FigureVerdict:
     """The verdict of one figure: the values from the summaries, the interval from the paired trials."""
@@ -571,7 +551,7 @@ def figure_verdict(metric: VerdictMetric, method: str, scope: str, base: Mapping
     lost = bool(bsec is not None and bsec.get(metric.section) is not None
                 and (csec is None or csec.get(metric.section) is None))
     ci = None
-    if b is not None and c is not None and clusters is not None and metric.kind in ("rate", "error"):
+    if b is not None and c is not None and clusters is not None and metric.rule in ("rate", "error"):
         ci = paired_interval(metric, method, pairs, clusters)[1]
     fig = FigureVerdict(method, scope, metric, b, c, ci, "", "", counted)
     verdict, reason = decide(metric, b, c, ci, tol, lost=lost, allowed=tol.allowance(fig.path, metric.key))
@@ -621,12 +601,11 @@ def compare_runs(base: Mapping[str, Any], candidate: Mapping[str, Any], pairs: S
         extra_notes.append("no paired trial records: no intervals, the tolerances alone decide")
     figures: list[FigureVerdict] = []
     for method in names:
-        for metric in HEADLINE_METRICS:
+        for metric in metrics.judged():
             for s in scopes:
                 figures.append(figure_verdict(metric, method, s, base, candidate, scope_pairs[s], clusters[s], tol,
                                               method in chosen))
-    run_checks = [N_FAILED, *([TIME] if tol.check_time else [])]
-    for metric in run_checks:
+    for metric in metrics.run_checks(tol.check_time):
         figures.append(figure_verdict(metric, "core", ALL, base, candidate, (), None, tol, True))
     return Comparison(tuple(figures), metric_verdicts(figures), trial_moves(pairs, tol, top),
                       tuple(m for m in names if m in chosen), tuple(m for m in names if m not in chosen),
@@ -634,13 +613,17 @@ def compare_runs(base: Mapping[str, Any], candidate: Mapping[str, Any], pairs: S
 
 
 # -- what changed most --------------------------------------------------------------------------------------
-MOVE_METRICS = tuple(m for m in HEADLINE_METRICS if m.key != "pose.success_rate_constrained")
+def move_metrics() -> tuple[Metric, ...]:
+    """The figures "what changed most" compares per trial: the headline metrics of a method but the constrained
+    pose success (per trial it is the success itself, or undefined)."""
+    return tuple(m for m in metrics.judged() if m.key != "pose.success_rate_constrained")
 
 
-def _move_size(metric: VerdictMetric, b: float, c: float, tol: Tolerances) -> float:
+
+def _move_size(metric: Metric, b: float, c: float, tol: Tolerances) -> float:
     """How far a trial's figure moved on a [0, 1] scale: a rate's absolute change (the Brier score's halved,
     it spans [0, 2]); an error's relative change ``|c - b| / max(b, c)``, counted only beyond its tolerance."""
-    if metric.kind == "rate":
+    if metric.rule == "rate":
         return abs(c - b)
     if metric.key == "classification.brier":
         return abs(c - b) / 2
@@ -666,14 +649,14 @@ def trial_moves(pairs: Sequence[TrialPair], tol: Tolerances = DEFAULT_TOLERANCES
                 out.append(TrialMove(p.trial_id, p.scene, p.group, 1.5, "now runs", ()))
             continue
         moves, score = [], 0.0
-        for metric in MOVE_METRICS:
+        for metric in move_metrics():
             b = trial_figure(metric, method_section(p.base, method, metric.section))
             c = trial_figure(metric, method_section(p.candidate, method, metric.section))
             if b is None and c is None:
                 continue
             size = 1.0 if (b is None) != (c is None) else _move_size(metric, b, c, tol)
             if size > 1e-9:
-                moves.append(FigureMove(metric.label, b, c, metric.digits))
+                moves.append(FigureMove(metric.title, b, c, metric.digits))
                 score = max(score, size)
         if moves:
             out.append(TrialMove(p.trial_id, p.scene, p.group, score, "", tuple(moves)))

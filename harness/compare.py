@@ -14,24 +14,26 @@ suite refers to, through the configuration hash) and the same trial ids. The met
 
 Every numeric leaf (:func:`compare`, :func:`flatten`) is still available, listed by ``harness compare --all``:
 each leaf becomes a dotted metric path (``classification.per_class.CYL.recall``,
-``groups.mockup/mockup_laser.segmentation.over_rate``...), its direction from its name (rates of correct
-detection, accuracy, precision, recall, F1 and success are better higher; over, under, missed and noise
-rates, the Brier score, errors, times and ``n_failed`` lower; counts and settings have none) and a per-leaf
-tolerance word. Those words are informative: only the headline verdict decides. A leaf that went from a
-value to null inside a section that is still there (a per-class precision with no patch of that label any
-more) is ``undefined``, not a loss. The 95 % intervals (``*_ci95`` keys, ``ci95_bootstrap``) are not
-metrics: they are skipped.
+``groups.mockup/mockup_laser.segmentation.over_rate``...) with the direction and tolerance rule of the
+declaration of :mod:`evaluation.metrics` that covers it (never guessed from its name) and a per-leaf tolerance
+word. Those words are informative: only the headline verdict decides. A leaf declared informative (a count, a
+setting) has no direction; a leaf that no declaration covers is ``undeclared`` (and the comparison's notes
+say how many there are), never silently skipped. A leaf that went from a value to null inside a section that
+is still there (a per-class precision with no patch of that label any more) is ``undefined``, not a loss. The
+95 % intervals (``*_ci95`` keys, ``ci95_bootstrap``) are not metrics, and the subtrees declared informative
+as a whole (``provenance``, ``view``, the sweep...) are tables, not figures: they are not listed.
 """
 
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from evaluation import metrics
+from evaluation.metrics import SECTIONS, Metric
 from evaluation.verdicts import (
     DEFAULT_TOLERANCES,
     Comparison,
@@ -39,6 +41,7 @@ from evaluation.verdicts import (
     TrialPair,
     compare_runs,
     methods_of,
+    tolerance_side,
 )
 from harness.provenance import describe_code
 from harness.summary import scene_of
@@ -46,17 +49,10 @@ from reports.regression import HEADLINE_HEADER, MOVES_HEADER, figure_cells, move
 from scenes.config import show
 
 __all__ = ["Tolerances", "Comparison", "CompareError", "RunResults", "load_run", "run_differences",
-           "pair_trials", "compare_dirs", "format_comparison", "compare", "regressions", "flatten", "format_rows"]
+           "pair_trials", "compare_dirs", "format_comparison", "compare", "regressions", "flatten", "format_rows",
+           "direction", "undeclared_note"]
 
 TOLERANCES_DIR = Path(__file__).parent / "tolerances"
-HIGHER = ("correct_detection_rate", "accuracy", "precision", "recall", "f1", "macro_f1", "success_rate",
-          "success_rate_constrained")
-LOWER_RATES = ("over_rate", "under_rate", "missed_rate", "noise_rate")
-LOWER_ERRORS = ("brier", "ece")
-ERROR_PARENTS = ("rotation_error_deg", "translation_error_mm", "add_mm", "displacement_error_mm")
-STAT_KEYS = ("median", "p90", "max", "mean")
-SECTIONS = ("segmentation", "classification", "pose", "change")
-SKIPPED_TREES = ("provenance", "run", "failures", "view", "reliability", "confusion", "sweep")
 
 
 @dataclass(frozen=True)
@@ -64,8 +60,10 @@ class Row:
     metric: str
     base: float | None
     candidate: float | None
-    direction: str  # "higher", "lower", "time", or "" (reported only)
-    verdict: str  # "ok", "regression", "improved", "missing" (section lost), "undefined", "new", ""
+    direction: str  # "higher" or "lower" (its declaration's), or "" (informative or undeclared)
+    # "ok", "regression", "improved", "missing" (section lost), "undefined", "new", "undeclared" (no declaration
+    # covers the leaf), "" (not judged: informative, or a time without --check-time)
+    verdict: str
 
     @property
     def delta(self) -> float | None:
@@ -94,96 +92,73 @@ def load_summary(path: str | Path) -> dict[str, Any]:
     return data
 
 
-def flatten(node: Any, prefix: str = "") -> dict[str, float | None]:
-    """Numeric leaves (and null sections) of a summary as dotted paths."""
-    out: dict[str, float | None] = {}
-    if isinstance(node, dict):
-        for k, v in node.items():
-            if k in SKIPPED_TREES or is_interval_key(str(k)):
-                continue
-            path = f"{prefix}.{k}" if prefix else str(k)
-            if v is None:
-                out[path] = None
-            elif isinstance(v, dict | list):
-                out.update(flatten(v, path) if isinstance(v, dict) else {})
-            elif isinstance(v, bool):
-                continue
-            elif isinstance(v, int | float) and math.isfinite(v):
-                out[path] = float(v)
-    return out
+def _leaves(summary: dict[str, Any]) -> dict[str, tuple[tuple[str, ...], float | None]]:
+    """Dotted path -> (key path, value) of :func:`evaluation.metrics.leaves`."""
+    return {".".join(path): (path, v) for path, v in metrics.leaves(summary)}
 
 
-def is_interval_key(key: str) -> bool:
-    """Whether a summary key holds an interval (``accuracy_ci95``) or how intervals were made (``ci95_bootstrap``)."""
-    return key.endswith("_ci95") or key.startswith("ci95")
+def flatten(node: dict[str, Any]) -> dict[str, float | None]:
+    """Numeric leaves (and null sections) of a summary as dotted paths (intervals and the subtrees declared
+    informative as a whole left out)."""
+    return {k: v for k, (_, v) in _leaves(node).items()}
 
 
-def direction(metric: str) -> str:
-    parts = metric.split(".")
-    leaf = parts[-1]
-    if "timing_s" in parts:
-        return "time"
-    if leaf in HIGHER:
-        return "higher"
-    if leaf in LOWER_RATES or leaf in LOWER_ERRORS or leaf == "n_failed":
-        return "lower"
-    if leaf in STAT_KEYS and len(parts) >= 2 and parts[-2] in ERROR_PARENTS:
-        return "lower"
-    return ""
-
-
-def _is_section(metric: str) -> bool:
-    return metric.split(".")[-1] in SECTIONS
+def direction(path: tuple[str, ...] | str) -> str:
+    """The better direction of the summary leaf at ``path`` (a key tuple, or a dotted path whose group names hold
+    no dot), from its declaration: ``higher``, ``lower``, or ``""`` (informative or undeclared)."""
+    d = metrics.declaration(tuple(path.split(".")) if isinstance(path, str) else path)
+    return d.direction if isinstance(d, Metric) else ""
 
 
 def compare(base: dict[str, Any], candidate: dict[str, Any], tol: Tolerances = DEFAULT_TOLERANCES) -> list[Row]:
     """Every numeric leaf of both summaries with its per-leaf tolerance word (informative, for ``--all``; the
-    verdict of a comparison is :func:`compare_dirs`'s)."""
-    fb, fc = flatten(base), flatten(candidate)
+    verdict of a comparison is :func:`compare_dirs`'s), by the declarations of :mod:`evaluation.metrics`."""
+    fb, fc = _leaves(base), _leaves(candidate)
+    paths = {k: p for k, (p, _) in (*fc.items(), *fb.items())}
     rows = []
-    lost = sorted(k for k, v in fc.items() if v is None and _is_section(k)
+    lost = sorted(k for k, (p, v) in fc.items() if v is None and p[-1] in SECTIONS
                   and any(m.startswith(k + ".") for m in fb))
     rows += [Row(k, None, None, "", "regression") for k in lost]  # present in base, null in candidate
-    for metric in sorted(set(fb) | set(fc)):
-        if _is_section(metric) and fb.get(metric) is None and fc.get(metric) is None:
+    for key in sorted(paths):
+        path = paths[key]
+        b, c = (fb.get(key) or (None, None))[1], (fc.get(key) or (None, None))[1]
+        if path[-1] in SECTIONS and b is None and c is None:
             continue
-        if any(metric.startswith(k + ".") for k in lost):
+        if any(key.startswith(k + ".") for k in lost):
             continue
-        b, c = fb.get(metric), fc.get(metric)
-        d = direction(metric)
-        rows.append(Row(metric, b, c, d, _verdict(metric, b, c, d, tol)))
+        decl = metrics.declaration(path)
+        if isinstance(decl, Metric):
+            rest = ".".join(metrics.split_scope(path)[1])
+            rows.append(Row(key, b, c, decl.direction, _verdict(decl, key, rest, b, c, tol)))
+        elif decl is None and not (b is None and c is None and metrics.covers_node(path)):
+            rows.append(Row(key, b, c, "", "undeclared"))
+        else:
+            rows.append(Row(key, b, c, "", ""))
     return rows
 
 
-def _verdict(metric: str, b: float | None, c: float | None, d: str, tol: Tolerances) -> str:
+def _verdict(m: Metric, path: str, key: str, b: float | None, c: float | None, tol: Tolerances) -> str:
     if b is None and c is None:
         return ""
     if c is None:
-        return "undefined" if d else ""  # a value became null inside a section that is there: nothing to score
+        return "undefined"  # a value became null inside a section that is there: nothing to score
     if b is None:
-        return "new" if d else ""
-    if not d:
+        return "new"
+    if m.rule == "time" and not tol.check_time:
         return ""
-    if metric.split(".")[-1] == "n_failed":
-        return "regression" if c - b > tol.n_failed_increase else ("improved" if c < b else "ok")
-    allowed = tol.per_metric.get(metric)
-    if d == "higher":
-        allowed = tol.rate_drop if allowed is None else allowed
-        return "regression" if b - c > allowed + 1e-12 else ("improved" if c - b > allowed else "ok")
-    if d == "lower":
-        leaf = metric.split(".")[-1]
-        if leaf in LOWER_RATES:
-            allowed = tol.rate_drop if allowed is None else allowed
-            return "regression" if c - b > allowed + 1e-12 else ("improved" if b - c > allowed else "ok")
-        growth = tol.error_growth if allowed is None else allowed
-        limit = b * (1 + growth) + tol.error_floor
-        return "regression" if c > limit else ("improved" if c < b * (1 - growth) - tol.error_floor else "ok")
-    if d == "time":
-        if not tol.check_time:
-            return ""
-        limit = b * (1 + tol.time_growth) + tol.time_floor_s
-        return "regression" if c > limit else "ok"
-    return ""
+    side = tolerance_side(m, b, c, tol, tol.allowance(path, key))
+    return "regression" if side < 0 else ("improved" if side > 0 else "ok")
+
+
+def undeclared_note(*summaries: dict[str, Any], limit: int = 3) -> str:
+    """One line naming the numeric leaves of the summaries that no declaration of :mod:`evaluation.metrics`
+    covers (empty when there are none)."""
+    found = sorted({p for s in summaries for p in metrics.undeclared(s)})
+    if not found:
+        return ""
+    more = f" and {len(found) - limit} more" if len(found) > limit else ""
+    return (f"{len(found)} numeric leaf(s) of summary.json are declared by no metric of evaluation/metrics.py "
+            f"(listed as undeclared by --all, judged by nothing): {', '.join(found[:limit])}{more}")
 
 
 def regressions(rows: list[Row]) -> list[Row]:
@@ -194,15 +169,17 @@ def regressions(rows: list[Row]) -> list[Row]:
 
 #: the per-leaf words of ``--all`` (informative, so not the verdict's words)
 LEAF_WORDS = {"regression": "worse", "improved": "better", "missing": "lost", "undefined": "undefined",
-              "new": "new", "ok": "", "": ""}
+              "new": "new", "undeclared": "undeclared", "ok": "", "": ""}
 
 
 def format_rows(rows: list[Row], fmt: str = "text", only_changes: bool = False) -> str:
     """Every leaf as a table, ``text`` (aligned columns) or ``md`` (Markdown): base, candidate, delta, which way
-    is better, and whether it moved beyond its tolerance (``worse``/``better``), lost its section (``lost``) or
-    became null within it (``undefined``). ``only_changes``: the leaves that moved or changed state only."""
+    is better, and whether it moved beyond its tolerance (``worse``/``better``), lost its section (``lost``),
+    became null within it (``undefined``) or has no declaration (``undeclared``). ``only_changes``: the leaves
+    that moved or changed state only (and the undeclared ones)."""
     shown = [r for r in rows if not only_changes or r.verdict in ("regression", "missing", "improved", "new",
-                                                                   "undefined") or (r.delta not in (None, 0.0))]
+                                                                   "undefined", "undeclared")
+             or (r.delta not in (None, 0.0))]
 
     def num(x: float | None) -> str:
         return "null" if x is None else f"{x:.6g}"
@@ -407,6 +384,8 @@ def compare_dirs(base: RunResults, candidate: RunResults, tol: Tolerances = DEFA
                            "and trials, or pass --force)")
     notes = [f"compared with --force although the runs differ: {'; '.join(differences)}"] if differences else []
     notes += run_notes(base, candidate)
+    if note := undeclared_note(base.summary, candidate.summary):
+        notes.append(note)
     pairs = pair_trials(base.records, candidate.records)
     return compare_runs(base.summary, candidate.summary, pairs, tol, methods, top=top, notes=notes)
 

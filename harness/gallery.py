@@ -17,13 +17,14 @@ from typing import Any
 
 import numpy as np
 
+from evaluation.metrics import MIN_SCORED_PIXELS
 from harness.suite import TrialSpec
 from harness.trial import PreparedScene, method_params, prepare_scene, sensor_for
 from recognition.describe import SceneDescription, describe
 from reports import figures
-from reports.colours import CHANGE_LABELS
 from reports.document import GalleryTrial
-from reports.render import MIN_PATCH_PIXELS, image, worst_trials
+from reports.render import image, worst_trials
+from scenes.vocabulary import CHANGE_LABELS
 from sensors.range_image import Scan, ScanTruth
 
 
@@ -69,8 +70,9 @@ def reproduced(record: Mapping[str, Any], desc: SceneDescription) -> bool:
 
 
 def wrong_label_mask(desc: SceneDescription, patches: Sequence[Mapping[str, Any]]) -> np.ndarray:
-    """(H, W) bool: pixels of the scored patches (>= 200 pixels) whose recorded label differs from the truth."""
-    wrong_ids = {int(p["patch"]) for p in patches if p.get("n_pixels", 0) >= MIN_PATCH_PIXELS
+    """(H, W) bool: pixels of the scored patches (:data:`evaluation.metrics.MIN_SCORED_PIXELS` or more) whose
+    recorded label differs from the truth."""
+    wrong_ids = {int(p["patch"]) for p in patches if p.get("n_pixels", 0) >= MIN_SCORED_PIXELS
                  and p["label"] != p["truth"]}
     mask = np.zeros(desc.labels.shape, dtype=bool)
     for p in desc.patches:
@@ -159,8 +161,8 @@ def draw(record: Mapping[str, Any], r: Rerun, why: str) -> GalleryTrial:
         image(figures.region_picture(np.where(r.truth.surface_id >= 0, r.truth.surface_id, -1),
                                      "truth surfaces", number_min_pixels=10**9),
               "Truth surfaces (each in its own colour)."),
-        image(figures.region_picture(r.description.labels), "The core's regions, numbered (patch ids of 200 pixels "
-              "or more) as in the paper's classification table."),
+        image(figures.region_picture(r.description.labels), "The core's regions, numbered (patch ids of "
+              f"{MIN_SCORED_PIXELS} pixels or more) as in the paper's classification table."),
         image(figures.class_overlay_picture(shade, r.description.class_image(), wrong_label_mask(r.description,
                                                                                                  patches)),
               "The core's labels over the shaded image; red stripes: label differs from the truth class."),

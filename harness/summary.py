@@ -30,9 +30,10 @@ from evaluation.aggregate import (
     stats,
 )
 from evaluation.intervals import DEFAULT_BOOTSTRAP, BootstrapParams, Clusters, Resampling
+from evaluation.metrics import TIMING_STAGES
 
 SCHEMA = "harness.summary/1"
-TIMING_KEYS = ("sensor", "segmentation", "classification", "matching", "icp", "change", "total")
+TIMING_KEYS = TIMING_STAGES
 SECTIONS: dict[str, Callable[[list[dict], Resampling], dict | None]] = {
     "segmentation": aggregate_segmentation,
     "classification": lambda trials, rs: aggregate_classification(trials, resampling=rs),

@@ -25,9 +25,8 @@ from evaluation.pose import changed_features, constrains_pose, pose_section
 from harness.suite import TrialPlan, TrialSpec
 from recognition.change import detect_changes
 from recognition.describe import DescribeParams, core_sigma, describe
-from recognition.localise import LocaliseParams, localise
+from recognition.localisation import LocaliseParams, ModelPredictor, localise
 from recognition.peers import PEERS
-from recognition.predict import ModelPredictor
 from scenes.families import family_member
 from scenes.model import SceneModel
 from scenes.perturb import ChangeTruth, PerturbationSpec, perturb

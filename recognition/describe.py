@@ -15,7 +15,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.ndimage as ndi
 
-from recognition.classify import PaperParams, PatchClassification, SelectParams, classify_patch, merge_test
+from recognition.classification import (
+    CLASSES,
+    PaperParams,
+    PatchClassification,
+    SelectParams,
+    classify_patch,
+    merge_test,
+)
 from recognition.segmentation import Segmentation, SegmentationParams, SurfaceType, segment
 from sensors.config import MAX_PIXELS
 from sensors.range_image import Scan
@@ -38,7 +45,7 @@ class DescribeParams:
         (about ``BYTES_PER_PIXEL``; measured 1.5 GB peak for 2000 x 2000), so a larger image is refused with
         a clear error up front rather than exhausting the machine's memory part-way; raise it knowingly.
     merge_explained : with the ``select`` classifier, merge touching patches of one label that one dedicated
-        primitive explains (:func:`recognition.classify.merge_test`): a pipe or wall the segmenter's quadric
+        primitive explains (:func:`recognition.classification.merge_test`): a pipe or wall the segmenter's quadric
         and plane fits left in pieces. The description's labels are then the merged ones (the segmentation's
         stay in :attr:`SceneDescription.segmentation`). On the ``calibration`` suite (seed 4242, never
         ``default``; DESIGN 10.8) it raised the pooled correct detection 0.730 -> 0.743 (factory scanner
@@ -107,8 +114,6 @@ class SceneDescription:
 
     def class_image(self) -> np.ndarray:
         """(H, W) int8 index into ``CLASSES`` of each pixel's patch label (-1 where none)."""
-        from recognition.classify import CLASSES
-
         out = np.full(self.labels.shape, -1, dtype=np.int8)
         for p in self.patches:
             out.flat[p.pixels] = CLASSES.index(p.label)
@@ -203,7 +208,7 @@ def _touching_pairs(labels: np.ndarray, min_contacts: int = 3) -> list[tuple[int
 def _merge_explained(patches: list, labels: np.ndarray, params: DescribeParams, correlation_area: float, classify,
                      window: int) -> tuple[list, np.ndarray]:
     """Merge touching patches of one primitive label that one dedicated primitive explains, best first (the most
-    negative criterion gain), until no pair passes :func:`recognition.classify.merge_test`; the merged patches
+    negative criterion gain), until no pair passes :func:`recognition.classification.merge_test`; the merged patches
     are classified again. Returns the patches (in the original order, merged ones in place of their first part)
     and the label image."""
     sp = params.classifier_params if isinstance(params.classifier_params, SelectParams) else SelectParams()

@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 
-CLASSES = ("PLAN", "CYL", "SPH", "CONE", "OTH")
-CHANGE_LABELS = ("unchanged", "moved", "missing", "altered", "new")
+from scenes.vocabulary import CHANGE_LABELS, CLASSES  # the keys of the palettes below (declared in scenes)
+
+__all__ = ["CLASSES", "CHANGE_LABELS", "CLASS_COLOURS", "CHANGE_COLOURS", "HOOVER_COLOURS", "METHOD_COLOURS",
+           "PEER_CYCLE", "STAGE_COLOURS", "method_colour", "rgb", "region_colours"]
 
 CLASS_COLOURS: dict[str, str] = {
     "PLAN": "#4c72b0",  # blue

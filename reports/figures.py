@@ -17,6 +17,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
+from evaluation.metrics import MIN_SCORED_PIXELS
 from reports.colours import (
     CHANGE_COLOURS,
     CHANGE_LABELS,
@@ -394,7 +395,7 @@ def shaded_picture(shade: np.ndarray, title: str = "cosine-shaded range image") 
     return _picture(grey(shade), title)
 
 
-def patch_centres(labels: np.ndarray, min_pixels: int = 200) -> list[tuple[float, float, int]]:
+def patch_centres(labels: np.ndarray, min_pixels: int = MIN_SCORED_PIXELS) -> list[tuple[float, float, int]]:
     """(x, y, id) of a representative pixel of every region of ``min_pixels`` or more: the pixel of the region
     closest to its centroid (so the number sits on the region even when it is not convex)."""
     lab = np.asarray(labels)
@@ -409,8 +410,8 @@ def patch_centres(labels: np.ndarray, min_pixels: int = 200) -> list[tuple[float
     return out
 
 
-def region_picture(labels: np.ndarray, title: str = "regions (core segmentation)", number_min_pixels: int = 200
-                   ) -> bytes:
+def region_picture(labels: np.ndarray, title: str = "regions (core segmentation)",
+                   number_min_pixels: int = MIN_SCORED_PIXELS) -> bytes:
     """The region image (like the paper's Fig. 3): each patch id (>= 0) in its own colour, -1 black, regions of
     ``number_min_pixels`` or more numbered with their patch id."""
     lab = np.asarray(labels)

@@ -5,40 +5,17 @@ The verdicts (DESIGN 10.9, 11.3) are :mod:`evaluation.verdicts`'s, one implement
 passes the :class:`~evaluation.verdicts.Comparison` that ``harness compare`` prints, and both show its figures
 through :func:`figure_cells` and :func:`move_cells`. Without a comparison the report shows the plain deltas of
 the headline metrics (:func:`headline_deltas`), reusable by any caller that has two ``summary.json`` dicts.
+The metrics, their directions, units and number formats are :mod:`evaluation.metrics`'s declarations.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
 from typing import Any
 
+from evaluation import metrics
+from evaluation.metrics import Metric
 from evaluation.verdicts import ALL, FAILING, Comparison, FigureVerdict, TrialMove
-
-
-@dataclass(frozen=True)
-class Metric:
-    """A headline metric: its label, where it lives in a method's sections, direction and number format."""
-
-    label: str
-    path: tuple[str, ...]
-    direction: str  # "higher" or "lower" is better
-    digits: int = 3
-    unit: str = ""
-
-
-HEADLINE: tuple[Metric, ...] = (
-    Metric("segmentation: correct detection rate", ("segmentation", "correct_detection_rate"), "higher"),
-    Metric("segmentation: missed rate", ("segmentation", "missed_rate"), "lower"),
-    Metric("classification: accuracy", ("classification", "accuracy"), "higher"),
-    Metric("classification: Brier score", ("classification", "brier"), "lower"),
-    Metric("classification: expected calibration error", ("classification", "ece"), "lower"),
-    Metric("pose: success rate", ("pose", "success_rate"), "higher"),
-    Metric("pose: rotation error, median", ("pose", "rotation_error_deg", "median"), "lower", 3, "deg"),
-    Metric("pose: translation error, median", ("pose", "translation_error_mm", "median"), "lower", 1, "mm"),
-    Metric("change: macro-F1", ("change", "macro_f1"), "higher"),
-    Metric("time per trial, median", ("timing_s", "total", "median"), "lower", 2, "s"),
-)
 
 
 class Missing:
@@ -92,12 +69,14 @@ def lookup_interval(sections: Mapping[str, Any] | None, path: tuple[str, ...]) -
 
 
 def headline_deltas(base: Mapping[str, Any], candidate: Mapping[str, Any], method: str = "core",
-                    metrics: tuple[Metric, ...] = HEADLINE) -> list[dict[str, Any]]:
-    """The headline metrics of ``method`` in two summaries, with candidate - base and whether it got better.
+                    shown: Sequence[Metric] | None = None) -> list[dict[str, Any]]:
+    """The headline metrics (``shown``, default: :func:`evaluation.metrics.headline`) of ``method`` in two
+    summaries, with candidate - base and whether it got better.
 
     Returns
     -------
-    list of ``{metric, label, base, candidate, delta, direction, better}``: ``base``/``candidate`` are floats
+    list of ``{metric, key, label, base, candidate, delta, direction, better}`` (``metric``: the figure's path in
+    the summary, ``key``: its declaration's): ``base``/``candidate`` are floats
     or None (null section or absent key), ``delta`` None unless both exist, ``better`` True/False/None
     (None: unchanged or not comparable).
     """
@@ -105,14 +84,14 @@ def headline_deltas(base: Mapping[str, Any], candidate: Mapping[str, Any], metho
         return summary if method == "core" else (summary.get("baselines") or {}).get(method)
 
     rows = []
-    for m in metrics:
+    for m in metrics.headline() if shown is None else shown:
         b, c = lookup(sections(base), m.path), lookup(sections(candidate), m.path)
         b = None if isinstance(b, Missing) else b
         c = None if isinstance(c, Missing) else c
         delta = None if b is None or c is None else c - b
         better = None if not delta else (delta > 0) == (m.direction == "higher")
-        rows.append({"metric": ".".join(m.path) if method == "core" else f"baselines.{method}." + ".".join(m.path),
-                     "label": m.label, "base": b, "candidate": c, "delta": delta, "direction": m.direction,
+        rows.append({"metric": m.key if method == "core" else f"baselines.{method}.{m.key}", "key": m.key,
+                     "label": m.title, "base": b, "candidate": c, "delta": delta, "direction": m.direction,
                      "better": better})
     return rows
 
@@ -131,12 +110,11 @@ def figure_cells(f: FigureVerdict) -> tuple[str, ...]:
     beyond tolerance that had no interval says so."""
     d = f.metric.digits
     ci = "" if f.interval is None else f"[{f.interval[0]:+.{d}f}, {f.interval[1]:+.{d}f}]"
-    unit = f" {f.metric.unit}" if f.metric.unit else ""
     verdict = f.verdict.upper() if f.verdict in FAILING and f.counted else f.verdict
-    if f.verdict in ("regression", "improved") and f.interval is None and f.metric.kind in ("rate", "error"):
+    if f.verdict in ("regression", "improved") and f.interval is None and f.metric.rule in ("rate", "error"):
         verdict += " (tolerance alone)"
     delta = "" if f.delta is None else f"{f.delta:+.{d}f}"
-    return (f.method, f.metric.label + unit, f.scope, _num(f.base, d), _num(f.candidate, d), delta, ci, verdict)
+    return (f.method, f.metric.display, f.scope, _num(f.base, d), _num(f.candidate, d), delta, ci, verdict)
 
 
 def shown_figures(comparison: Comparison, counted: bool) -> list[FigureVerdict]:

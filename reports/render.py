@@ -9,7 +9,9 @@ is shown bare, never with an interval made up here.
 "not built yet", never left out and never filled in. The gallery pictures and the regression verdicts come
 from the caller (``harness report`` re-runs the gallery trials and hands in ``harness compare``'s
 :class:`evaluation.verdicts.Comparison`), so this package never runs the simulator nor re-implements the
-regression rules.
+regression rules. Which figures the headline, per-group, per-method, oracle and regression tables show, with
+what title, direction, unit and digits, are the declarations of :mod:`evaluation.metrics` (``headline`` and
+``compact``).
 """
 
 from __future__ import annotations
@@ -24,7 +26,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from evaluation import metrics
 from evaluation.attribution import attribute, largest_losses
+from evaluation.metrics import HOOVER_RATES, MIN_SCORED_PIXELS, TIMING_STAGES, Metric
 from evaluation.verdicts import Comparison
 from reports import figures
 from reports.colours import CHANGE_COLOURS, CHANGE_LABELS, CLASS_COLOURS, CLASSES
@@ -32,9 +36,7 @@ from reports.document import Cell, Code, Document, GalleryTrial, Grid, Image, No
 from reports.html import render_html
 from reports.markdown import render_markdown
 from reports.regression import (
-    HEADLINE,
     MOVES_HEADER,
-    Metric,
     Missing,
     figure_cells,
     headline_deltas,
@@ -44,10 +46,8 @@ from reports.regression import (
     shown_figures,
 )
 
-HOOVER_RATES = ("correct_detection_rate", "over_rate", "under_rate", "missed_rate", "noise_rate")
-HOOVER_HEAD = ("correct", "over", "under", "missed", "noise")
-STAGES = ("sensor", "segmentation", "classification", "matching", "icp", "change", "total")
-MIN_PATCH_PIXELS = 200
+HOOVER_HEAD = ("correct", "over", "under", "missed", "noise")  # column titles of HOOVER_RATES
+STAGES = TIMING_STAGES
 SWEEP_GROUP = re.compile(r"\[([A-Za-z_][A-Za-z0-9_]*)=([^\]]+)\]")
 METHOD_NOTES = {"core": "the recognition core (its model-selection classifier)",
                 "paper": "the core with the paper's literal classifier (plausibilities, 0.2 margin)"}
@@ -144,6 +144,17 @@ def value_cell(v: float | Missing, digits: int = 3, unit: str = "", ci: tuple[fl
     return Cell(fmt_ci(v, ci, digits, unit), "num")
 
 
+def headline_rows() -> tuple[Metric, ...]:
+    """The rows of the headline table: the headline metrics, the failed trials aside (the table's last row
+    counts trials and failures)."""
+    return tuple(m for m in metrics.headline() if m.rule != "count")
+
+
+def rate_metrics() -> tuple[Metric, ...]:
+    """The compact metrics that are rates in [0, 1], plotted per group and against swept values."""
+    return tuple(m for m in metrics.compact() if m.rule == "rate")
+
+
 def figure_cell(sections: Mapping[str, Any] | None, m: Metric) -> Cell:
     """The cell of headline metric ``m`` of a method's sections, with its interval when it has one."""
     return value_cell(lookup(sections, m.path), m.digits, m.unit, lookup_interval(sections, m.path))
@@ -190,7 +201,7 @@ def trial_score(record: Mapping[str, Any], method: str = "core") -> tuple[float,
         parts.append(("correct detection", float(seg["correct_detection_rate"])))
     cls = m.get("classification")
     if cls:
-        patches = [p for p in cls.get("patches", []) if p.get("n_pixels", 0) >= MIN_PATCH_PIXELS]
+        patches = [p for p in cls.get("patches", []) if p.get("n_pixels", 0) >= MIN_SCORED_PIXELS]
         if patches:
             parts.append((f"accuracy ({len(patches)} patches)",
                           sum(p["truth"] == p["label"] for p in patches) / len(patches)))
@@ -281,8 +292,8 @@ def headline_section(run: RunData) -> Section:
     s = run.summary
     methods = run.methods
     rows = []
-    for m in HEADLINE:
-        cells = [Cell(m.label), Cell(m.direction)]
+    for m in headline_rows():
+        cells = [Cell(m.title), Cell(m.direction)]
         cells += [figure_cell(run.sections(meth), m) for meth in methods]
         rows.append(tuple(cells))
     rows.append((Cell("trials (failed)"), Cell(""),
@@ -295,11 +306,11 @@ def headline_section(run: RunData) -> Section:
     ]
     groups = s.get("groups") or {}
     if groups:
-        gm = [m for m in HEADLINE if m.label in _GROUP_METRICS]
+        gm = metrics.compact()
         grows = [(Cell(name), Cell(str(g.get("n_trials", "")), "num"),
                   Cell(str(g.get("n_failed", 0)), "bad" if g.get("n_failed") else "num"),
                   *[figure_cell(g, m) for m in gm]) for name, g in groups.items()]
-        blocks.append(Table(("group (scene/sensor)", "trials", "failed", *[_short(m) for m in gm]), tuple(grows),
+        blocks.append(Table(("group (scene/sensor)", "trials", "failed", *[m.compact for m in gm]), tuple(grows),
                             caption="Per group, core method (DESIGN 10.5: the per-preset figures)."))
         points = group_points(groups)
         if len(groups) > 1 and points:
@@ -328,32 +339,17 @@ def intervals_note(summary: Mapping[str, Any]) -> str:
                                            if n <= 3 else ""))
 
 
-GROUP_FIGURE_METRICS = (("correct detection", ("segmentation", "correct_detection_rate")),
-                        ("accuracy", ("classification", "accuracy")),
-                        ("pose success", ("pose", "success_rate")),
-                        ("change macro-F1", ("change", "macro_f1")))
-
-
 def group_points(groups: Mapping[str, Mapping[str, Any]]
                  ) -> dict[str, dict[str, tuple[float, tuple[float, float] | None]]]:
-    """metric -> group -> (value, interval or None), for the core's headline rates that some group has."""
+    """metric -> group -> (value, interval or None), for the core's compact rates (:func:`rate_metrics`) that
+    some group has."""
     out: dict[str, dict[str, tuple[float, tuple[float, float] | None]]] = {}
-    for label, path in GROUP_FIGURE_METRICS:
+    for m in rate_metrics():
         for name, g in groups.items():
-            v = lookup(g, path)
+            v = lookup(g, m.path)
             if not isinstance(v, Missing):
-                out.setdefault(label, {})[name] = (v, lookup_interval(g, path))
+                out.setdefault(m.compact, {})[name] = (v, lookup_interval(g, m.path))
     return out
-
-
-_GROUP_METRICS = ("segmentation: correct detection rate", "classification: accuracy", "classification: Brier score",
-                  "pose: success rate", "change: macro-F1", "time per trial, median")
-
-
-def _short(m: Metric) -> str:
-    return {"segmentation: correct detection rate": "correct detection", "classification: accuracy": "accuracy",
-            "classification: Brier score": "Brier", "pose: success rate": "pose success",
-            "change: macro-F1": "change macro-F1", "time per trial, median": "time/trial (s)"}.get(m.label, m.label)
 
 
 def segmentation_section(run: RunData) -> Section:
@@ -422,9 +418,9 @@ def classification_section(run: RunData, table_trial: str | None) -> Section:
     present = {m: v for m, v in secs.items() if v is not None}
     first = next(iter(present.values()))
     blocks: list[Any] = [Para(
-        f"Each patch of {first.get('min_patch_pixels', MIN_PATCH_PIXELS)} pixels or more takes the truth class of "
+        f"Each patch of {first.get('min_patch_pixels', MIN_SCORED_PIXELS)} pixels or more takes the truth class of "
         f"the surface it mostly covers ({first.get('n_patches', 0)} such patches of "
-        f"{first.get('n_patches_all', 'n/a')}). Brier score: multi-class over PLAN, CYL, SPH, CONE, OTH; ECE: "
+        f"{first.get('n_patches_all', 'n/a')}). Brier score: multi-class over {', '.join(CLASSES)}; ECE: "
         "expected calibration error of the winning label's probability.")]
     rows = [(Cell(m), *([ci_cell(sec, "accuracy"), ci_cell(sec, "brier"),
                          ci_cell(sec, "ece"), Cell(str(sec.get("n_patches", "")), "num")]
@@ -480,7 +476,7 @@ def choose_table_trial(run: RunData, gallery: Sequence[GalleryTrial] | None, met
 
 
 def paper_table_rows(patches: Sequence[Mapping[str, Any]], core_labels: Mapping[int, str] | None = None,
-                     min_pixels: int = MIN_PATCH_PIXELS) -> list[tuple[Cell, ...]]:
+                     min_pixels: int = MIN_SCORED_PIXELS) -> list[tuple[Cell, ...]]:
     """The paper's table (region, P(cyl), P(sphere), P(cone), class) for the quadric patches: those of
     ``min_pixels`` or more that the method did not label PLAN or whose truth is not PLAN; plus truth and the
     core's label of the same patch when known."""
@@ -519,20 +515,20 @@ def paper_table_section(run: RunData, trial_id: str | None, method: str = "paper
         f"classifier ({method}) gave it (CYL, SPH or CONE when that plausibility is highest by more than 0.2, "
         "OTH otherwise). Region numbers are the patch ids of the region image in the gallery. Added columns: the "
         "truth class and feature, and the core's label of the same patch. Patches under "
-        f"{MIN_PATCH_PIXELS} pixels and planar patches labelled PLAN are not listed.")]
+        f"{MIN_SCORED_PIXELS} pixels and planar patches labelled PLAN are not listed.")]
     head = ("region", "pixels", "P(cyl)", "P(sphere)", "P(cone)", "class", "truth", "truth feature")
     if core:
         head = (*head, "core label")
     if rows:
         blocks.append(Table(head, tuple(rows), id="paper-table"))
     else:
-        blocks.append(Note("No quadric region of 200 pixels or more in this trial.", "info"))
+        blocks.append(Note(f"No quadric region of {MIN_SCORED_PIXELS} pixels or more in this trial.", "info"))
     agg = paper_plausibility_summary(run.ok_records(), method)
     if agg:
         blocks.append(Table(("truth class", "patches", "mean P(cyl)", "mean P(sphere)", "mean P(cone)",
                              "labelled right"), tuple(agg),
                             caption=f"Over all trials: mean plausibilities of {method} per truth class "
-                                    f"(patches of {MIN_PATCH_PIXELS} pixels or more)"))
+                                    f"(patches of {MIN_SCORED_PIXELS} pixels or more)"))
     return Section(sid, title, blocks)
 
 
@@ -542,7 +538,7 @@ def paper_plausibility_summary(records: Sequence[Mapping[str, Any]], method: str
     by: dict[str, list[Mapping[str, Any]]] = {}
     for r in records:
         for p in _get(r, "methods", method, "classification", "patches") or []:
-            if p.get("n_pixels", 0) >= MIN_PATCH_PIXELS:
+            if p.get("n_pixels", 0) >= MIN_SCORED_PIXELS:
                 by.setdefault(p["truth"], []).append(p)
     rows = []
     for c in CLASSES:
@@ -668,12 +664,6 @@ def parse_sweep_group(name: str) -> tuple[str, dict[str, float]] | None:
     return SWEEP_GROUP.sub("", name), values
 
 
-SWEEP_METRICS = (("correct detection", ("segmentation", "correct_detection_rate")),
-                 ("accuracy", ("classification", "accuracy")),
-                 ("pose success", ("pose", "success_rate")),
-                 ("change macro-F1", ("change", "macro_f1")))
-
-
 def sweeps_section(run: RunData) -> Section | None:
     """Metric against each swept parameter (DESIGN 10.13); None when the suite sweeps nothing."""
     series: dict[tuple[str, str, tuple], list[tuple[float, Mapping[str, Any]]]] = {}
@@ -688,6 +678,7 @@ def sweeps_section(run: RunData) -> Section | None:
     if not series:
         return None
     blocks: list[Any] = []
+    shown = rate_metrics()
     for key in sorted({k for k, _, _ in series}):
         lines: dict[str, list[tuple[float, float | None, tuple[float, float] | None]]] = {}
         rows = []
@@ -695,19 +686,20 @@ def sweeps_section(run: RunData) -> Section | None:
             if k != key:
                 continue
             suffix = "".join(f" [{a}={b:g}]" for a, b in others)
-            for label, path in SWEEP_METRICS:
-                vals = [(v, None if isinstance(x := lookup(g, path), Missing) else x, lookup_interval(g, path))
+            for m in shown:
+                vals = [(v, None if isinstance(x := lookup(g, m.path), Missing) else x, lookup_interval(g, m.path))
                         for v, g in pts]
                 if any(x is not None for _, x, _ in vals):
-                    lines[f"{label}, {base}{suffix}"] = vals
+                    lines[f"{m.compact}, {base}{suffix}"] = vals
             for v, g in sorted(pts, key=lambda t: t[0]):
                 rows.append((Cell(base + suffix), Cell(f"{v:g}", "num"), Cell(str(g.get("n_trials", "")), "num"),
-                             *[value_cell(lookup(g, path), ci=lookup_interval(g, path)) for _, path in SWEEP_METRICS]))
+                             *[value_cell(lookup(g, m.path), m.digits, m.unit, lookup_interval(g, m.path))
+                               for m in shown]))
         if lines:
             blocks.append(Image(figures.sweep_figure(key, lines), f"Metrics against {key} (core method, one point "
                                 "per swept value; each value is a group of its own; bars: 95 % interval over the "
                                 "group's scenes, where it has two or more).", alt=f"metrics vs {key}"))
-        blocks.append(Table(("group", key, "trials", *[lab for lab, _ in SWEEP_METRICS]), tuple(rows),
+        blocks.append(Table(("group", key, "trials", *[m.compact for m in shown]), tuple(rows),
                             caption=f"Swept parameter {key}"))
     return Section("sweeps", "Parameter sweeps", blocks)
 
@@ -753,18 +745,18 @@ def methods_section(run: RunData) -> Section | None:
     """Peer methods side by side, pooled and per group; None when the run has only the core."""
     if len(run.methods) < 2:
         return None
-    metrics = [m for m in HEADLINE if m.label in _GROUP_METRICS and m.path[0] != "timing_s"]
+    shown = [m for m in metrics.compact() if m.rule != "time"]
     scopes: list[tuple[str, Mapping[str, Any]]] = [("all trials", run.summary)]
     scopes += list((run.summary.get("groups") or {}).items())
     rows = []
     for scope_name, scope in scopes:
         for meth in run.methods:
             rows.append((Cell(scope_name), Cell(meth), *[figure_cell(run.sections(meth, scope), m)
-                                                         for m in metrics]))
+                                                         for m in shown]))
     blocks: list[Any] = [
         Para("Every method runs on the same trials and images. " + "; ".join(
             f"{m}: {METHOD_NOTES.get(m, 'peer method')}" for m in run.methods) + "."),
-        Table(("scope", "method", *[_short(m) for m in metrics]), tuple(rows), id="methods"),
+        Table(("scope", "method", *[m.compact for m in shown]), tuple(rows), id="methods"),
     ]
     return Section("methods", "Methods side by side", blocks)
 
@@ -778,9 +770,8 @@ def oracles_section(run: RunData) -> Section | None:
     oracles = run.summary.get("oracles") or {}
     if not oracles:
         return None
-    metrics = [m for m in HEADLINE if m.path[0] != "timing_s"]
-    rows = [(Cell(m.label), Cell(m.direction), figure_cell(run.summary, m),
-             *[figure_cell(sec, m) for sec in oracles.values()]) for m in metrics]
+    rows = [(Cell(m.title), Cell(m.direction), figure_cell(run.summary, m),
+             *[figure_cell(sec, m) for sec in oracles.values()]) for m in metrics.judged()]
     blocks: list[Any] = [
         Para("Each oracle replaces one stage of the core by the truth, so the figures after it show how much of "
              "the end-to-end error that stage causes. " + "; ".join(
@@ -868,7 +859,7 @@ def regression_section(run: RunData, base: Mapping[str, Any], base_name: str,
             if meth != "core" and not d["delta"] and (d["base"] is None) == (d["candidate"] is None):
                 continue  # peers: only what moved
             style = "" if d["better"] is None else ("good" if d["better"] else "bad")
-            m = next(x for x in HEADLINE if x.label == d["label"])
+            m = metrics.metric(d["key"])
             rows.append((Cell(meth), Cell(d["label"]), _delta_value(d["base"], base, m, meth),
                          _delta_value(d["candidate"], run.summary, m, meth),
                          Cell("" if d["delta"] is None else f"{d['delta']:+.{m.digits}f}", style or "num"),

@@ -80,8 +80,9 @@ from scenes.generator import DATA_DIR
 from scenes.geometry import make_transform, rotation_about, unit
 from scenes.mjcf import box_of_planes
 from scenes.model import Object, SceneModel
+from scenes.vocabulary import CHANGE_LABELS
 
-LABELS = ("unchanged", "moved", "missing", "altered", "new")
+LABELS = CHANGE_LABELS  # the truth labels of features and objects (scenes.vocabulary)
 FLOOR_STANDING = ("tank", "cabinet")
 #: Kinds of objects as the perturbation tells them apart (:func:`change_kind`).
 CHANGE_KINDS = ("floor", "wall", "pipe_run", "tank", "sphere_tank", "cabinet", "structure")

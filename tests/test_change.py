@@ -9,7 +9,7 @@ from evaluation.change import change_section, observable_features
 from evaluation.oracles import truth_classification, truth_segmentation
 from recognition.change import ChangeParams, FeatureChange, detect_changes, object_label
 from recognition.describe import core_sigma, describe
-from recognition.predict import ModelPredictor
+from recognition.localisation import ModelPredictor
 from scenes import builders
 from scenes.geometry import look_at, make_transform
 from scenes.model import SceneModel
@@ -186,7 +186,7 @@ def test_no_change_gives_no_changed_label(scene, preset):
 def test_an_object_with_an_altered_feature_is_altered_as_a_whole_not_moved():
     # a pipe run of another radius: one section's fit shows the radius, its elbow (shape not compared) is
     # found a radius change away and a section's predicted place is partly revealed; none of it is a move
-    from recognition.change import _propagate_rigid_moves
+    from recognition.change.detection import _propagate_rigid_moves
     from scenes.features import Cylinder, Torus
     from scenes.model import Object, SceneModel
 
@@ -217,7 +217,7 @@ def test_a_new_region_takes_the_unexplained_pixels_left_out_of_every_patch():
     reported new includes the unexplained pixels connected to it, and no others."""
     from types import SimpleNamespace
 
-    from recognition.change import _new_regions
+    from recognition.change.detection import _new_regions
 
     shape = (10, 12)
     face = np.ravel_multi_index(np.nonzero(np.pad(np.ones((4, 4), bool), ((1, 5), (1, 7)))), shape)
@@ -239,7 +239,7 @@ def test_a_feature_gone_from_an_object_that_moved_as_a_whole_moved_with_it(sibli
     """Counting (the paper's semantic layer): a pipe run whose sections moved, one of them not found at the
     new place but revealed at the old one, moved as a whole - unless a section stayed (a section move). A
     section found in place but partly revealed (it moved along itself) moved too, whatever its order."""
-    from recognition.change import _propagate_rigid_moves
+    from recognition.change.detection import _propagate_rigid_moves
     from scenes.features import Cylinder
     from scenes.model import Object, SceneModel
 
@@ -289,7 +289,7 @@ def test_a_feature_hidden_at_the_old_place_is_found_moved_with_its_object():
 def test_a_coaxial_patch_in_front_of_a_feature_is_the_feature_grown():
     """A pipe of a larger radius lies nearer the sensor than its model: the patch over the feature's pixels
     in front of the prediction, on the model's axis, is the altered feature; an occluder elsewhere is not."""
-    from recognition.change import _altered_by_patches, _patches_in_place
+    from recognition.change.detection import _altered_by_patches, _patches_in_place
     from scenes.features import Cylinder
 
     f = Cylinder("run.s0", centre=np.array([0.0, 0.0, 1.0]), axis=np.array([0.0, 1.0, 0.0]), radius=0.07, length=1.2)
@@ -312,7 +312,7 @@ def test_a_plane_fit_tilted_within_the_allowance_over_its_patch_is_no_move(allow
     true ranges; disparity quantisation alone makes 1.1): over its 1 m patch that is 4.4 cm. Within a 10 cm
     allowance every point is where the model says, so the wall is in place (before, its normal alone made it a
     'small move', then 'moved' by 0.4 m); with a 2 cm allowance the tilt is a move."""
-    from recognition.change import _tight
+    from recognition.change.detection import _tight
     from scenes.features import Plane
 
     wall = Plane("wall", centre=np.array([-10.0, 0.0, 3.0]), normal=np.array([1.0, 0.0, 0.0]),

@@ -1,4 +1,4 @@
-"""Tests of recognition.classify: both classifiers on synthetic patches, degenerate inputs, misuse."""
+"""Tests of recognition.classification: both classifiers on synthetic patches, degenerate inputs, misuse."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from recognition._synthetic import KINDS, TRUE_CLASS, sample_patch
-from recognition.classify import CLASSES, PaperParams, PatchClassification, SelectParams, classify_patch
-from recognition.primitives import ConeFit, CylinderFit, PlaneFit, SphereFit, TorusFit
+from recognition.classification import CLASSES, PaperParams, PatchClassification, SelectParams, classify_patch
+from recognition.fitting import ConeFit, CylinderFit, PlaneFit, SphereFit, TorusFit
 
 
 def _check_result(r: PatchClassification):

@@ -135,7 +135,7 @@ def test_output_starts_with_the_headline_table(base_run, tmp_path, capsys):
                                 "delta", "verdict"]
     body = lines[2:2 + 8 * 3 + 1]  # 8 headline metrics x (all, a/x, b/y), then failed trials
     assert [line.split()[0] for line in body] == ["core"] * 25
-    assert {verdict_of(out, "core", m.label + (f" {m.unit}" if m.unit else ""), s)
+    assert {verdict_of(out, "core", m.display, s)
             for m in HEADLINE_METRICS for s in ("all", "a/x", "b/y")} == {"pass"}
     assert "What changed most" in out and "no trial's figures moved" in out
     assert out.rstrip().splitlines()[-1] == "PASS: no regression in 9 headline metric(s) of core"

@@ -8,9 +8,9 @@ import pytest
 from evaluation.oracles import truth_segmentation
 from harness.suite import load_suite
 from harness.trial import prepare_scene, sensor_for, trial_scan, trial_viewpoints
-from recognition.classify import merge_test
+from recognition.classification import merge_test
 from recognition.describe import DescribeParams, core_sigma, describe
-from recognition.primitives import fit_cylinder, fit_plane
+from recognition.fitting import fit_cylinder, fit_plane
 from recognition.segmentation import Patch
 
 

@@ -13,7 +13,6 @@ from hypothesis import strategies as st
 from scipy.stats import binom
 
 from evaluation.aggregate import (
-    CHANGE_LABELS,
     aggregate_change,
     aggregate_classification,
     aggregate_pose,
@@ -35,6 +34,7 @@ from evaluation.intervals import (
 )
 from harness.compare import compare, flatten, regressions
 from harness.summary import comparable, summarise
+from scenes.vocabulary import CHANGE_LABELS
 
 Z95 = 1.959963984540054
 PHI_Z95 = math.exp(-Z95 ** 2 / 2) / math.sqrt(2 * math.pi)  # normal density at the 97.5 % point

@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 
 from evaluation.pose import changed_features, constrains_pose, pose_section
-from recognition.localise import LocaliseParams, PoseResult, localise
-from recognition.verify import coarse_sensor
+from recognition.localisation import LocaliseParams, PoseResult, coarse_sensor, localise
 from sensors.models import PinholeCamera, ScanningLaser
 
 
@@ -121,7 +120,7 @@ def test_agreement_lets_a_missing_object_be_seen_through_but_not_a_whole_wall():
     still disagrees on the rest."""
     from types import SimpleNamespace
 
-    from recognition.verify import VerifyParams, agreement
+    from recognition.localisation import VerifyParams, agreement
 
     shape = (20, 20)
     labels = np.zeros(shape, np.int32)
@@ -143,7 +142,7 @@ def test_agreement_lets_a_missing_object_be_seen_through_but_not_a_whole_wall():
 
 
 def test_free_translation_only_for_one_pure_translation():
-    from recognition.localise import free_translation
+    from recognition.localisation.localise import free_translation
 
     t = np.zeros((6, 1))
     t[3:, 0] = [0.0, -2.0, 0.0]  # a (scaled) translation along -y
@@ -156,7 +155,7 @@ def test_free_translation_only_for_one_pure_translation():
 
 
 def test_slide_along_finds_the_agreement_peak_within_the_model_extent():
-    from recognition.localise import slide_along
+    from recognition.localisation.localise import slide_along
 
     T = np.eye(4)
     T[:3, 3] = [1.0, 2.0, 1.5]

@@ -7,10 +7,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from recognition.classify import PatchClassification
+from recognition.classification import PatchClassification
 from recognition.describe import SceneDescription, ScenePatch
-from recognition.matching import MatchParams, binary_ok, match, model_elements, scene_items
-from recognition.primitives import fit_cylinder, fit_plane, fit_sphere
+from recognition.fitting import fit_cylinder, fit_plane, fit_sphere
+from recognition.localisation import match
+from recognition.localisation.matching import MatchParams, binary_ok, model_elements, scene_items
 from recognition.segmentation import SurfaceType
 from scenes.features import Cylinder, Plane, Sphere
 from scenes.geometry import look_at
@@ -175,7 +176,7 @@ def test_pathological_search_stops_within_its_time_budget():
 def test_hypotheses_handed_on_include_the_best_explanation_of_every_item():
     """A list cut by score alone loses the one interpretation that explains a telling item (DESIGN 6.3: the
     score counts pixels, verification decides): the cut keeps, for each item, the best hypothesis matching it."""
-    from recognition.matching import Hypothesis, _diverse
+    from recognition.localisation.interpretation_tree import Hypothesis, _diverse
 
     def hyp(score, matched):
         return Hypothesis(tuple((i, 0 if i in matched else -1) for i in range(4)), None, score, len(matched))
@@ -192,7 +193,7 @@ def test_hypotheses_handed_on_include_the_best_explanation_of_every_item():
 def test_a_patch_without_candidates_is_left_to_the_wildcard():
     """A cylinder of a radius the model does not have (an altered pipe) can only be a wildcard: the search
     leaves it out, and the rest still gives the pose."""
-    import recognition.matching as M
+    import recognition.localisation.matching as M
 
     model, desc, T_ws, seen = _scene(False)
     odd = Cylinder("odd", centre=[0.4, 1.0, 1.4], axis=[1, 0, 0], radius=0.2, length=1.5)
@@ -215,7 +216,7 @@ def test_a_cylinder_whose_radius_is_unknown_pairs_with_no_pipe():
     candidate (its axis would otherwise fix the pose at random)."""
     from dataclasses import replace
 
-    import recognition.matching as M
+    import recognition.localisation.matching as M
 
     model, desc, T_ws, seen = _scene(False)
     params = MatchParams(min_pixels=50)
@@ -233,7 +234,7 @@ def test_a_cylinder_whose_radius_is_unknown_pairs_with_no_pipe():
 def test_the_least_width_of_a_rectangle_is_its_short_side(a, ratio, theta):
     """Points filling an a x b rectangle turned by any angle: the least width over directions 5 deg apart is
     b, up to sin(2.5 deg) of the diagonal."""
-    from recognition.matching import _min_width
+    from recognition.localisation.matching import _min_width
 
     b = a * ratio
     u, v = np.meshgrid(np.linspace(-a / 2, a / 2, 41), np.linspace(-b / 2, b / 2, 41))
@@ -248,7 +249,7 @@ def test_a_patch_wider_than_a_thin_face_does_not_pair_with_it():
     wall, the end face of a partition), but no 2 m wide piece of surface lies on it."""
     from dataclasses import replace
 
-    import recognition.matching as M
+    import recognition.localisation.matching as M
 
     model, desc, _, _ = _scene(False)
     ledge = Plane("ledge", centre=[0, 5, 2], normal=[0, 0, 1], u_axis=[1, 0, 0], half_size=(10, 0.1))

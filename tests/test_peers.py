@@ -24,7 +24,7 @@ def _needs(name: str):
 @pytest.fixture(scope="module")
 def scene():
     """A small room (floor, two walls), a pipe and a sphere; its predictor; a scan from a known pose."""
-    from recognition.predict import ModelPredictor
+    from recognition.localisation import ModelPredictor
     from scenes.model import Object
     from sensors.models import PinholeCamera
     from sensors.noise import NoiseModel
@@ -139,7 +139,7 @@ def test_registration_peers_find_the_pose_from_a_prior(scene, name):
     model, predictor, scan, T, _ = scene
     from dataclasses import replace
 
-    from recognition.pose import exp_so3
+    from recognition.localisation import exp_so3
 
     D = np.eye(4)
     D[:3, :3] = exp_so3(np.radians([2.0, -1.0, 3.0]))
@@ -190,7 +190,7 @@ def test_change_peers_find_missing_and_new(scene, name):
     """Remove the ball from the scanned scene and add a box face in front of a wall."""
     peer = _needs(name)
     model, predictor, scan, T, pred = scene
-    from recognition.predict import ModelPredictor
+    from recognition.localisation import ModelPredictor
     from scenes.model import Object
     from sensors.range_image import Scan
 

@@ -7,7 +7,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from evaluation.pose import add_mm, pose_section, rotation_error_deg, translation_error_mm
-from recognition.pose import AxisPair, PlanePair, PointPair, apply_left, estimate_pose, pose_hypotheses, residuals
+from recognition.localisation import (
+    AxisPair,
+    PlanePair,
+    PointPair,
+    apply_left,
+    estimate_pose,
+    pose_hypotheses,
+    residuals,
+)
 
 
 def _random_T(seed: int) -> np.ndarray:
@@ -166,7 +174,7 @@ def test_metrics_truth_as_estimate_scores_perfectly():
 
 
 def test_pose_section_handles_failure_and_success():
-    from recognition.localise import PoseResult
+    from recognition.localisation import PoseResult
 
     T = _random_T(4)
     ok = PoseResult(True, "", T, T, np.eye(6), 0, 0.9, (), 3, 10, None, {})

@@ -1,4 +1,5 @@
-"""Tests of recognition.primitives: round trips, degenerate inputs, Monte Carlo covariance, radius bias."""
+"""Tests of the dedicated fits (recognition.fitting): round trips, degenerate inputs, Monte Carlo covariance,
+radius bias."""
 
 from __future__ import annotations
 
@@ -7,9 +8,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from recognition import primitives as prim
+from recognition import fitting
 from recognition._synthetic import sample_patch
-from recognition.primitives import fit_cone, fit_cylinder, fit_plane, fit_sphere, fit_torus
+from recognition.fitting import fit_cone, fit_cylinder, fit_plane, fit_sphere, fit_torus
+from recognition.fitting.cylinder import _fail_cylinder
+from recognition.fitting.torus import _torus_fun, _torus_retract
 
 
 def _angle(u, v):
@@ -182,7 +185,7 @@ def _footprint_cylinder_scan(rng, radius=0.08, dist=5.0, pixel_rad=2.2e-3, sigma
 
 
 def test_refit_along_rays_removes_footprint_bias():
-    from recognition.primitives import refit_along_rays
+    from recognition.fitting import refit_along_rays
 
     rel_geo, rel_ray, z = [], [], []
     for seed in range(4):
@@ -200,7 +203,7 @@ def test_refit_along_rays_removes_footprint_bias():
 
 
 def test_refit_along_rays_sphere_and_passthrough():
-    from recognition.primitives import refit_along_rays
+    from recognition.fitting import refit_along_rays
 
     rng = np.random.default_rng(3)
     c, R = np.array([0.1, -0.05, 2.0]), 0.15
@@ -220,7 +223,7 @@ def test_refit_along_rays_sphere_and_passthrough():
 
 
 def test_trimmed_chi2_caps_outliers():
-    from recognition.primitives import TRIM_SIGMA, trimmed_chi2
+    from recognition.fitting import TRIM_SIGMA, trimmed_chi2
 
     r = np.array([0.5, -1.0, 100.0, -50.0])
     assert trimmed_chi2(r) == pytest.approx(0.25 + 1.0 + 2 * TRIM_SIGMA**2)
@@ -251,13 +254,13 @@ def test_torus_jacobian_matches_finite_differences():
     rng = np.random.default_rng(3)
     p = sample_patch("torus", rng, "factory_scanner")
     state = (p.truth["centre"] + 0.01, p.truth["axis"], p.truth["major"] * 1.1, p.truth["minor"] * 0.9)
-    r, J = prim._torus_fun(state, p.points, p.sigma)
+    r, J = _torus_fun(state, p.points, p.sigma)
     eps = 1e-7
     for k in range(7):
         step = np.zeros(7)
         step[k] = eps
-        rp = prim._torus_fun(prim._torus_retract(state, step), p.points, p.sigma)[0]
-        rm = prim._torus_fun(prim._torus_retract(state, -step), p.points, p.sigma)[0]
+        rp = _torus_fun(_torus_retract(state, step), p.points, p.sigma)[0]
+        rm = _torus_fun(_torus_retract(state, -step), p.points, p.sigma)[0]
         np.testing.assert_allclose(J[:, k], (rp - rm) / (2 * eps), rtol=1e-4, atol=1e-4 * np.abs(J[:, k]).max())
 
 
@@ -287,7 +290,7 @@ def test_torus_major_radius_sigma_is_the_first_order_one():
     steps, preds = [], []
     for _ in range(200):
         noisy = p.points + (p.sigma * rng.normal(size=len(p.points)))[:, None] * u
-        r, J = prim._torus_fun(truth, noisy, p.sigma)
+        r, J = _torus_fun(truth, noisy, p.sigma)
         steps.append(-np.linalg.lstsq(J, r, rcond=None)[0][5])
         if len(preds) < 20:
             preds.append(fit_torus(noisy, p.sigma).major_radius_sigma)
@@ -299,12 +302,12 @@ def test_bend_test_tells_an_elbow_from_a_straight_tube():
     """Bending a fitted cylinder's axis predicts a large chi² decrease on an elbow, with a bend radius of the
     elbow's order, and next to none on a straight tube."""
     p = sample_patch("torus", np.random.default_rng(2), "factory_scanner")
-    gain, bend = prim.bend_test(fit_cylinder(p.points, p.sigma), p.points, p.sigma)
+    gain, bend = fitting.bend_test(fit_cylinder(p.points, p.sigma), p.points, p.sigma)
     assert gain > 100 and 0.3 * p.truth["major"] < bend < 3 * p.truth["major"]
     p = sample_patch("cylinder", np.random.default_rng(2), "factory_scanner")
-    gain, bend = prim.bend_test(fit_cylinder(p.points, p.sigma), p.points, p.sigma)
+    gain, bend = fitting.bend_test(fit_cylinder(p.points, p.sigma), p.points, p.sigma)
     assert gain < 2 * np.log(len(p.points))
-    assert prim.bend_test(prim._fail_cylinder(10, "x"), p.points, p.sigma) == (0.0, np.inf)
+    assert fitting.bend_test(_fail_cylinder(10, "x"), p.points, p.sigma) == (0.0, np.inf)
 
 
 @settings(max_examples=40, deadline=None, derandomize=True)
@@ -324,3 +327,18 @@ def test_torus_fit_never_raises_on_odd_point_sets(seed, n, shape):
     assert isinstance(f.ok, bool) and (f.ok or f.reason)
     if f.ok:
         assert f.major_radius > f.minor_radius > 0 and np.isfinite(f.cov).all()
+
+
+def test_both_plane_fits_give_one_plane_fit_type():
+    """The dedicated (weighted) plane and the segmenter's plain total-least-squares plane are the same
+    :class:`PlaneFit`, ``normal . x = offset`` with the normal facing the sensor."""
+    from recognition.fitting import PlaneFit, fit_plane_lsq
+
+    rng = np.random.default_rng(7)
+    x = np.column_stack([rng.uniform(-1, 1, (300, 2)), np.full(300, 3.0) + rng.normal(0, 1e-3, 300)])
+    for fit in (fit_plane(x, np.full(300, 1e-3)), fit_plane_lsq(x, np.full(300, 1e-3))):
+        assert isinstance(fit, PlaneFit) and fit.ok
+        np.testing.assert_allclose(fit.normal, [0, 0, -1], atol=1e-2)
+        assert fit.offset == pytest.approx(-3.0, abs=1e-3)
+        np.testing.assert_allclose(fit.params[6:], [*fit.normal, -fit.offset])
+        assert fit.rms_sigma == pytest.approx(1.0, rel=0.2)

@@ -1,4 +1,5 @@
-"""Tests of recognition.quadric: fit, canonical form, Jacobians, Monte Carlo check of the covariance."""
+"""Tests of the general quadric (recognition.fitting.quadric, .algebra): fit, canonical form, Jacobians, Monte
+Carlo check of the covariance."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import numpy as np
 import pytest
 
 from recognition._synthetic import random_rotation, sample_patch
-from recognition.quadric import (
+from recognition.fitting import (
     QuadricFit,
     canonical_quantities,
     canonicalise,
@@ -206,7 +207,7 @@ def test_automatic_rank_truncates_cylinders_only():
 
 def test_gradient_scatter_from_moments_equals_the_explicit_sum():
     # taubin_fit forms sum w G'G from the 4x4 moments of (y, 1): the same matrix as the explicit sum
-    from recognition.quadric import MONOMIAL_GRADIENT, design_matrices
+    from recognition.fitting.algebra import MONOMIAL_GRADIENT, design_matrices
 
     y = np.random.default_rng(0).normal(size=(50, 3))
     w = np.random.default_rng(1).uniform(0.5, 2.0, 50)
@@ -215,3 +216,28 @@ def test_gradient_scatter_from_moments_equals_the_explicit_sum():
     Y = np.column_stack([y, np.ones(50)])
     from_moments = np.einsum("kmi,mn,knj->ij", MONOMIAL_GRADIENT, (Y * w[:, None]).T @ Y, MONOMIAL_GRADIENT)
     np.testing.assert_allclose(from_moments, explicit, rtol=1e-12, atol=1e-12)
+
+
+def test_the_basis_and_gradient_by_rows_equal_those_by_points():
+    """One monomial basis and one gradient: the row layout (3, N) the segmenter's batched fits use gives the
+    same numbers, bit for bit, as the point layout (N, 3)."""
+    from recognition.fitting import gradient, monomials
+
+    x = np.random.default_rng(3).normal(size=(200, 3))
+    p = np.random.default_rng(4).normal(size=10)
+    np.testing.assert_array_equal(monomials(x.T.copy(), axis=0), monomials(x).T)
+    np.testing.assert_array_equal(gradient(p[:, None], x.T.copy(), axis=0), gradient(p, x).T)
+    A, B, _ = quadric_matrices(p)
+    np.testing.assert_allclose(gradient(p, x), 2.0 * x @ A + B, rtol=1e-12, atol=1e-12)  # evaluate()'s product
+
+
+def test_the_normalisation_map_gives_the_same_surface_in_the_input_frame():
+    """``p_x = L p_y`` for ``y = (x - mean) / scale``: the quadric takes the same values at the same points."""
+    from recognition.fitting import monomials, normalisation_map
+
+    rng = np.random.default_rng(5)
+    x = rng.normal(size=(100, 3)) * 2.0 + [1.0, -2.0, 4.0]
+    mean, scale = x.mean(axis=0), 1.7
+    p_y = rng.normal(size=10)
+    np.testing.assert_allclose(monomials(x) @ (normalisation_map(mean, scale) @ p_y),
+                               monomials((x - mean) / scale) @ p_y, rtol=1e-10, atol=1e-10)

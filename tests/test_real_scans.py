@@ -17,7 +17,7 @@ import pytest
 
 from harness.cli import main as harness_main
 from recognition.describe import DescribeParams, describe
-from recognition.primitives import fit_cylinder, fit_plane
+from recognition.fitting import fit_cylinder, fit_plane
 from sensors.readers import load_scan
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"

@@ -302,13 +302,14 @@ def test_regression_section_with_and_without_verdicts(tmp_path):
 
 
 def test_headline_deltas_direction_and_missing():
+    # the headline metrics and their directions are evaluation.metrics's declarations (missed rate: not headline)
     b = {"segmentation": {"correct_detection_rate": 0.5, "missed_rate": 0.2}, "classification": None,
-         "timing_s": {"total": {"median": 2.0}}}
+         "pose": {"rotation_error_deg": {"median": 0.2}}, "timing_s": {"total": {"median": 2.0}}}
     c = {"segmentation": {"correct_detection_rate": 0.6, "missed_rate": 0.3}, "classification": None,
-         "timing_s": {"total": {"median": 2.0}}}
+         "pose": {"rotation_error_deg": {"median": 0.3}}, "timing_s": {"total": {"median": 2.0}}}
     d = {r["metric"]: r for r in headline_deltas(b, c)}
     assert d["segmentation.correct_detection_rate"]["better"] is True
-    assert d["segmentation.missed_rate"]["better"] is False
+    assert d["pose.rotation_error_deg.median"]["better"] is False and "segmentation.missed_rate" not in d
     assert d["classification.accuracy"]["delta"] is None and d["timing_s.total.median"]["better"] is None
     assert lookup(b, ("classification", "accuracy")) is NOT_BUILT
     assert lookup(b, ("pose", "success_rate")).why == "n/a"

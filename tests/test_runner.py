@@ -349,7 +349,7 @@ def test_store_writes_atomically_and_cleans_temporaries(tmp_path):
 def test_segmentation_benchmark_times_and_scores_one_frame(tmp_path, capsys):
     from threadpoolctl import threadpool_limits
 
-    from harness.bench_segmentation import main as bench_segmentation
+    from harness.bench.segmentation import main as bench_segmentation
     from harness.suite import load_suite
     from harness.trial import prepare_scene, run_trial
 
@@ -384,7 +384,7 @@ def test_segmentation_benchmark_times_and_scores_one_frame(tmp_path, capsys):
 @pytest.mark.parametrize("argv, message", [(["--repeat", "0"], "--repeat must be >= 1"),
                                            (["--groups", "no_such_group"], "no trial in groups 'no_such_group'")])
 def test_segmentation_benchmark_refuses_bad_arguments(argv, message, capsys):
-    from harness.bench_segmentation import main as bench_segmentation
+    from harness.bench.segmentation import main as bench_segmentation
 
     with pytest.raises(SystemExit) as exc:
         bench_segmentation(["--suite", "smoke", *argv])

@@ -1,4 +1,4 @@
-"""Tests of the H-K range-image segmentation (recognition/segmentation.py and its helpers)."""
+"""Tests of the H-K range-image segmentation (recognition/segmentation/ and its helpers)."""
 
 from __future__ import annotations
 
@@ -12,14 +12,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from evaluation.hoover import connected_truth_regions, hoover_score
-from recognition import derivatives as D
+from recognition.fitting import PlaneFit, QuadricSurfaceFit, fit_plane_lsq, fit_quadric_lsq, ray_residuals
 from recognition.segmentation import (
     EdgeType,
     SegmentationParams,
     SurfaceType,
     segment,
 )
-from recognition.surface_fit import PlaneFit, QuadricSurfaceFit, fit_plane, fit_quadric_lsq, ray_residuals
+from recognition.segmentation import derivatives as D
 
 CAM = S.Camera(120, 160, 150.0)
 NOISE_FREE_SIGMA = 3e-4  # declared sigma for exact images (sets the zero thresholds)
@@ -61,7 +61,7 @@ def test_plane_noise_free():
     assert p.surface_type == SurfaceType.PLANAR and isinstance(p.fit, PlaneFit)
     n_true = np.array([0.3, -0.2, -1.0]) / np.linalg.norm([0.3, -0.2, -1.0])
     assert np.allclose(p.fit.normal, n_true, atol=1e-9)  # faces the sensor
-    assert p.fit.d == pytest.approx(2.0 * n_true[2], abs=1e-9)
+    assert p.fit.offset == pytest.approx(2.0 * n_true[2], abs=1e-9)
     assert not p.small and not p.noisy
 
 
@@ -171,7 +171,7 @@ def test_multi_part_scene_hoover_perfect():
         by_id[sid] = seg.patches[lab]
     assert by_id[1].surface_type == SurfaceType.PLANAR and isinstance(by_id[1].fit, PlaneFit)
     assert np.allclose(by_id[1].fit.normal, [0, 0, -1], atol=2e-3)
-    assert by_id[1].fit.d == pytest.approx(-4.0, abs=2e-3)
+    assert by_id[1].fit.offset == pytest.approx(-4.0, abs=2e-3)
     assert by_id[2].surface_type == SurfaceType.CYLINDRICAL
     assert by_id[3].surface_type in (SurfaceType.ELLIPTIC, SurfaceType.CYLINDRICAL)
     for sid in (2, 3):
@@ -356,7 +356,7 @@ def test_savgol_kernels_exact_on_quadratics():
 # ----------------------------------------------------------------------------------- surface fits
 
 
-def test_fit_plane_recovers_and_covariance_matches_monte_carlo():
+def test_fit_plane_lsq_recovers_and_covariance_matches_monte_carlo():
     rng = np.random.default_rng(1)
     n_true = np.array([0.2, -0.1, -1.0])
     n_true /= np.linalg.norm(n_true)
@@ -366,9 +366,9 @@ def test_fit_plane_recovers_and_covariance_matches_monte_carlo():
     normals, ds, covs = [], [], []
     for _ in range(300):
         x = base + 1e-3 * rng.standard_normal(base.shape)
-        fit = fit_plane(x)
+        fit = fit_plane_lsq(x)
         normals.append(fit.normal)
-        ds.append(fit.d)
+        ds.append(fit.offset)
         covs.append(fit.cov)
     normals = np.array(normals)
     assert np.allclose(normals.mean(axis=0), n_true, atol=1e-3)
@@ -381,8 +381,8 @@ def test_fit_plane_recovers_and_covariance_matches_monte_carlo():
 
 @pytest.mark.parametrize("pts, reason", [(np.zeros((2, 3)), "fewer than 3"),
                                          (np.column_stack([np.arange(5.0)] * 3), "collinear")])
-def test_fit_plane_degenerate(pts, reason):
-    fit = fit_plane(pts)
+def test_fit_plane_lsq_degenerate(pts, reason):
+    fit = fit_plane_lsq(pts)
     assert not fit and reason in fit.reason
 
 
@@ -450,7 +450,7 @@ def test_quick_quadric_fit_of_a_small_piece_of_cylinder_is_within_the_noise():
     # a 12 x 12-pixel tile of a pipe, as merging and seed splitting fit them: the plain algebraic fit
     # (unit-norm eigenvector) is biased on such a small arc (RMS 1.86 sigma here, 7 sigma on the tiles of
     # simulated factory pipes); the Taubin fit normalises by the gradient and stays at the noise (1.00)
-    from recognition.segmentation import _quick_fit
+    from recognition.segmentation.quick_fits import _quick_fit
 
     sigma = 5e-4
     pts, sig, ids = S.render([S.cylinder([0, 0, 2.0], [0, 1, 0.2], 0.15, 3.0, 1)], CAM, sigma,
@@ -466,13 +466,14 @@ def test_quick_quadric_fit_of_a_small_piece_of_cylinder_is_within_the_noise():
 
 def test_batched_quick_fits_equal_one_by_one_fits():
     # _fit_groups fits all groups in one numpy pass; each group's fit is the one _quick_fit gives alone
-    from recognition.segmentation import _quick_fit, _quick_fits, _State
+    from recognition.segmentation.grid import _State
+    from recognition.segmentation.quick_fits import _quick_fit, _quick_fits
 
     surfaces = [S.plane([0, 0, 2.5], [0.2, 0, -1.0], 1), S.cylinder([0.3, 0, 2.0], [0, 1, 0.2], 0.2, 3.0, 2)]
     pts, sig, ids = S.render(surfaces, CAM, 5e-4, np.random.default_rng(4))
     X = pts.reshape(-1, 3)
     st = _State(X=X, U=X / np.linalg.norm(X, axis=1, keepdims=True), S=np.full(len(X), 5e-4),
-                hk=np.zeros(len(X), np.int64), params=SegmentationParams())
+                hk=np.zeros(len(X), np.int64))
     flat = ids.ravel()
     groups = [np.flatnonzero(flat == 1)[::7], np.flatnonzero(flat == 2)[::5], np.flatnonzero(flat == 2)[:60],
               np.flatnonzero(flat == 1)[:5], np.zeros(0, np.int64)]
@@ -491,8 +492,8 @@ def test_batched_quick_fits_equal_one_by_one_fits():
 
 @pytest.mark.parametrize("angle_deg", [90.0, 150.0, 170.0])
 def test_plane_pair_is_recognised_and_other_quadrics_are_not(angle_deg):
-    from recognition.quadric import quadric_params
-    from recognition.segmentation import _is_plane_pair
+    from recognition.fitting import quadric_params
+    from recognition.segmentation.quick_fits import _is_plane_pair
 
     rng = np.random.default_rng(5)
     T = rng.normal(size=3)
@@ -525,7 +526,8 @@ def test_plane_pair_is_recognised_and_other_quadrics_are_not(angle_deg):
 def test_two_flat_looking_halves_of_a_gentle_cylinder_merge_as_a_quadric(curved_planar_merge):
     # each half of a 3 m radius cylinder seen over 1 m fits a plane within the noise, their union does not:
     # they merge as one quadric only with curved_planar_merge (two faces at a crease never do: plane pair)
-    from recognition.segmentation import _merge, _State
+    from recognition.segmentation.grid import _State
+    from recognition.segmentation.merging import _merge
 
     sigma = 2e-3
     pts, sig, ids = S.render([S.cylinder([0, 0, 5.0], [0, 1.0, 0], 3.0, 3.0, 1)], CAM, sigma,
@@ -536,11 +538,11 @@ def test_two_flat_looking_halves_of_a_gentle_cylinder_merge_as_a_quadric(curved_
     labels = np.where(valid, np.where(np.arange(CAM.width)[None, :] < mid, 0, 1), -1).astype(np.int32)
     X = pts.reshape(-1, 3)
     U = X / np.linalg.norm(X, axis=1, keepdims=True)
-    st = _State(X=X, U=U, S=np.where(valid.ravel(), sigma, np.nan), hk=np.ones(X.shape[0], np.int64),
-                params=SegmentationParams(curved_planar_merge=curved_planar_merge))
+    st = _State(X=X, U=U, S=np.where(valid.ravel(), sigma, np.nan), hk=np.ones(X.shape[0], np.int64))
+    params = SegmentationParams(curved_planar_merge=curved_planar_merge)
     no_jump_h = np.zeros((CAM.height, CAM.width - 1), bool)
     no_jump_v = np.zeros((CAM.height - 1, CAM.width), bool)
-    merged = _merge(labels, st, no_jump_h, no_jump_v)
+    merged = _merge(labels, st, params, no_jump_h, no_jump_v)
     n_labels = len(np.unique(merged[valid]))
     assert n_labels == (1 if curved_planar_merge else 2)
 
@@ -549,7 +551,8 @@ def test_two_flat_looking_halves_of_a_gentle_cylinder_merge_as_a_quadric(curved_
 def test_a_patch_spanning_two_faces_is_split_along_its_crease(roof):
     """One label over both faces of a roof (a far box's corner reassembled from noisy tiles) is cut in two
     along the crease, each side on its own face; one over a cylinder, which no plane pair fits, is kept."""
-    from recognition.segmentation import _split_plane_pairs, _State
+    from recognition.segmentation.grid import _State
+    from recognition.segmentation.splits import _split_plane_pairs
 
     sigma = 1e-3
     if roof:
@@ -563,9 +566,8 @@ def test_a_patch_spanning_two_faces_is_split_along_its_crease(roof):
     labels = np.where(valid, 0, -1).astype(np.int32)
     X = pts.reshape(-1, 3)
     U = X / np.linalg.norm(X, axis=1, keepdims=True)
-    st = _State(X=X, U=U, S=np.where(valid.ravel(), sigma, np.nan), hk=np.ones(X.shape[0], np.int64),
-                params=SegmentationParams())
-    out = _split_plane_pairs(labels, st, st.params)
+    st = _State(X=X, U=U, S=np.where(valid.ravel(), sigma, np.nan), hk=np.ones(X.shape[0], np.int64))
+    out = _split_plane_pairs(labels, st, SegmentationParams())
     if not roof:
         assert out is labels
         return
@@ -597,7 +599,7 @@ def _pipe_run_points(profile, length: float, sigma: float, seed: int = 0, n: int
 def test_a_pipe_and_its_reducer_are_cut_apart_along_the_axis(shape):
     """A pipe (r = 0.1 m, 1.2 m) and a 6 deg reducer merged under 5 mm noise: cut within a slice of the join.
     A pipe or a cone alone is one surface along its axis: never cut."""
-    from recognition.segmentation import _axial_pieces
+    from recognition.segmentation.splits import _axial_pieces
 
     join, tan = 1.2, np.tan(np.radians(6.0))
     profiles = {"pipe+reducer": lambda t: np.where(t < join, 0.1, 0.1 - (t - join) * tan),
@@ -620,7 +622,8 @@ def test_a_far_box_corner_that_no_quadric_fits_is_cut_into_its_faces():
     """Two faces of a far box (12 m, 3 mm noise) meeting at 90 deg, with pixels mixed at the crease: the
     k-planes cut gives each face (one stray face pixel in twenty at most); a face with a parallel layer
     behind it and a noisy pipe seen as a strip are not cut."""
-    from recognition.segmentation import _faces, _State
+    from recognition.segmentation.grid import _State
+    from recognition.segmentation.splits import _faces
 
     rng = np.random.default_rng(3)
     n = 400
@@ -635,10 +638,9 @@ def test_a_far_box_corner_that_no_quadric_fits_is_cut_into_its_faces():
 
     def split(points, rays, sigma=0.003):
         """Face index per point (0 everywhere when the patch is not cut)."""
-        st = _State(X=points, U=rays, S=np.full(len(points), sigma), hk=np.ones(len(points), np.int64),
-                    params=SegmentationParams())
+        st = _State(X=points, U=rays, S=np.full(len(points), sigma), hk=np.ones(len(points), np.int64))
         lab = np.zeros(len(points), np.int32)
-        for j, face in enumerate(_faces(np.arange(len(points)), st, st.params)):
+        for j, face in enumerate(_faces(np.arange(len(points)), st, SegmentationParams())):
             lab[face] = j
         return lab
 
@@ -662,7 +664,8 @@ def test_a_far_box_corner_keeps_the_layer_behind_a_face_with_that_face():
     """Two faces of a far box and, behind one of them, a parallel layer of 15 % of its pixels (the wall seen
     past the box's edge, merged into the patch): cut into the two faces, the layer with the face it lies
     behind. A layer as large as the face is not a layer: the patch is not cut."""
-    from recognition.segmentation import _faces, _State
+    from recognition.segmentation.grid import _State
+    from recognition.segmentation.splits import _faces
 
     rng = np.random.default_rng(11)
     n, m = 400, 60
@@ -676,8 +679,8 @@ def test_a_far_box_corner_keeps_the_layer_behind_a_face_with_that_face():
         x = np.concatenate([top, side, layer])
         u = x / np.linalg.norm(x, axis=1, keepdims=True)
         x = x + u * rng.normal(0.0, 0.003, len(x))[:, None]
-        st = _State(X=x, U=u, S=np.full(len(x), 0.003), hk=np.ones(len(x), np.int64), params=SegmentationParams())
-        return _faces(np.arange(len(x)), st, st.params)
+        st = _State(X=x, U=u, S=np.full(len(x), 0.003), hk=np.ones(len(x), np.int64))
+        return _faces(np.arange(len(x)), st, SegmentationParams())
 
     got = faces_of(m)
     assert len(got) == 2
@@ -699,7 +702,7 @@ def test_k_planes_parts_a_far_box_corner_with_a_narrow_face(seed):
     The start from the pixels' normals put the strip into a broad face on such a frame of the default suite."""
     from scipy.spatial.transform import Rotation
 
-    from recognition.segmentation import _k_planes
+    from recognition.segmentation.splits import _k_planes
 
     rng = np.random.default_rng(seed)
     # box frame: the corner at its origin, the box in x, y, z >= 0, turned so (1, 1, 1) points away from the
@@ -735,7 +738,7 @@ def test_k_planes_parts_a_far_box_corner_with_a_narrow_face(seed):
 @given(st.lists(st.tuples(st.integers(-2, 40), st.integers(-2, 40)), max_size=60))
 @settings(max_examples=60, deadline=None)
 def test_unique_pairs_equal_numpy_unique_rows(rows):
-    from recognition.segmentation import _unique_pairs
+    from recognition.segmentation.grid import _unique_pairs
 
     pairs = np.array(rows, np.int64).reshape(-1, 2)
     got, counts = _unique_pairs(pairs, return_counts=True)
@@ -750,7 +753,7 @@ def test_unique_pairs_equal_numpy_unique_rows(rows):
 def _roof(seed: int):
     """A roof of two half-planes meeting at a crease, rendered with sigma 0.2 mm and no jumps: the valid
     mask, the crease's first column, the right labels (face 0 and 1), the state and links of ``_reassign``."""
-    from recognition.segmentation import _neighbour_links, _State
+    from recognition.segmentation.grid import _neighbour_links, _State
 
     sigma = 2e-4
     n1, n2 = np.array([1.0, 0, -1.0]), np.array([-1.0, 0, -1.0])
@@ -762,7 +765,7 @@ def _roof(seed: int):
     right = np.where(valid, ids - 1, -1).astype(np.int32)
     X = pts.reshape(-1, 3)
     st = _State(X=X, U=X / np.linalg.norm(X, axis=1, keepdims=True), S=np.where(valid.ravel(), sigma, np.nan),
-                hk=np.ones(X.shape[0], np.int64), params=SegmentationParams())
+                hk=np.ones(X.shape[0], np.int64))
     no_jump_h = np.zeros((CAM.height, CAM.width - 1), bool)
     no_jump_v = np.zeros((CAM.height - 1, CAM.width), bool)
     return valid, crease, right, st, _neighbour_links(valid.shape, valid, no_jump_h, no_jump_v), no_jump_h, no_jump_v
@@ -771,26 +774,28 @@ def _roof(seed: int):
 def test_border_pixels_on_the_wrong_face_move_to_the_face_they_lie_on():
     """A label border four columns past a roof's crease: the columns of the other face that fit it clearly
     better go back to it; no pixel leaves the face it lies on, and a right labelling is left alone."""
-    from recognition.segmentation import _reassign
+    from recognition.segmentation.reassignment import _reassign
 
     valid, crease, right, st, links, no_jump_h, no_jump_v = _roof(5)
     shifted = np.where(valid, (np.arange(CAM.width)[None, :] >= crease + 4).astype(np.int32), -1)
 
-    out = _reassign(shifted, st, links, no_jump_h, no_jump_v, rounds=16, margin=1.0)
+    params = SegmentationParams(reassign_rounds=16, reassign_margin=1.0)
+    out = _reassign(shifted, st, params, links, no_jump_h, no_jump_v)
     wrong_before = int((shifted != right).sum())
     wrong_after = int((out != right).sum())
     assert wrong_before == 4 * valid[:, crease].sum()
     assert wrong_after <= wrong_before // 4  # at most the column at the crease, which fits both faces
     assert not ((out != shifted) & (shifted == right)).any()  # nothing moved off its own face
-    assert np.array_equal(_reassign(right, st, links, no_jump_h, no_jump_v, rounds=16, margin=1.0), right)
-    assert np.array_equal(_reassign(shifted, st, links, no_jump_h, no_jump_v, rounds=0, margin=1.0), shifted)
+    assert np.array_equal(_reassign(right, st, params, links, no_jump_h, no_jump_v), right)
+    assert np.array_equal(_reassign(shifted, st, replace(params, reassign_rounds=0), links, no_jump_h, no_jump_v),
+                          shifted)
 
 
 def test_fragments_go_to_the_face_they_lie_on():
     """A fragment's own fit follows its few pixels, so it never loses a residual comparison: its pixels go
     to the linked patch whose surface fits them (here: 30 pixels inside one face of a roof, and 30 pixels of
     the other face just past the crease, both linked to each face)."""
-    from recognition.segmentation import _reassign, _State
+    from recognition.segmentation.reassignment import _reassign
 
     valid, crease, right, st, links, no_jump_h, no_jump_v = _roof(6)
     rows = np.flatnonzero(valid[:, crease - 20] & valid[:, crease + 2])
@@ -800,15 +805,15 @@ def test_fragments_go_to_the_face_they_lie_on():
     labels[r0 + 10:r0 + 12, crease:crease + 15] = 3  # face 1, touching face 0 at the crease
     assert (labels == 2).sum() == 30 and (labels == 3).sum() == 30
 
-    out = _reassign(labels, st, links, no_jump_h, no_jump_v, rounds=16, margin=1.0)
+    params = SegmentationParams(reassign_rounds=16, reassign_margin=1.0)
+    out = _reassign(labels, st, params, links, no_jump_h, no_jump_v)
     assert np.array_equal(out[labels == 2], np.zeros(30))
     frag = labels == 3
     assert np.array_equal(out[frag & (np.arange(CAM.width) > crease)[None, :]], np.ones(28))
     assert set(out[frag].tolist()) <= {0, 1}
     # a patch of min_patch_pixels or more keeps its own fit: the rule is for fragments only
-    big = replace(SegmentationParams(), min_patch_pixels=30)
-    st_big = _State(X=st.X, U=st.U, S=st.S, hk=st.hk, params=big)
-    kept = _reassign(labels, st_big, links, no_jump_h, no_jump_v, rounds=16, margin=1.0)
+    big = replace(params, min_patch_pixels=30)
+    kept = _reassign(labels, st, big, links, no_jump_h, no_jump_v)
     assert (kept[labels == 2] == 2).all()
 
 
@@ -841,7 +846,7 @@ def test_masked_fits_need_three_rows_and_three_columns(n_cols, fitted):
 @given(st.lists(st.integers(-3, 70000), min_size=0, max_size=80), st.booleans())
 @settings(max_examples=60, deadline=None)
 def test_groups_list_each_labels_pixels_in_order(values, small):
-    from recognition.segmentation import _groups
+    from recognition.segmentation.grid import _groups
 
     labels = np.array(values, np.int32)
     if small:  # few labels, many pixels each
@@ -856,7 +861,7 @@ def test_groups_list_each_labels_pixels_in_order(values, small):
 @given(st.lists(st.floats(0.0, 20.0) | st.just(np.inf), min_size=1, max_size=40), st.sampled_from([2.0, 6.0, 7.5]))
 @settings(max_examples=200, deadline=None)
 def test_trim_threshold_is_max_of_trim_and_three_medians(z, trim):
-    from recognition.segmentation import _trim_threshold
+    from recognition.segmentation.quick_fits import _trim_threshold
 
     z = np.array(z)
     assert _trim_threshold(z, trim) == max(trim, 3.0 * float(np.median(z)))
@@ -865,7 +870,7 @@ def test_trim_threshold_is_max_of_trim_and_three_medians(z, trim):
 @settings(max_examples=30, deadline=None, derandomize=True)
 @given(seed=st.integers(0, 2**32 - 1), m=st.integers(3, 60))
 def test_line_misfit_of_all_prefixes_matches_weighted_polyfit(seed, m):
-    from recognition.segmentation import _line_misfit
+    from recognition.segmentation.splits import _line_misfit
 
     g = np.random.default_rng(seed)
     x = np.sort(g.choice(200, m, replace=False))
@@ -884,7 +889,7 @@ def test_a_pipe_reducer_pipe_run_is_cut_into_its_three_parts():
     noise, cut as the splitter's passes do: no single cut leaves a line on both sides, three lines fit.
     In at least 6 of 8 noise draws (7 when written) the run ends in three or more pieces with under 10 % of
     its points in a piece whose majority is another part (the joins are placed to a slice or two)."""
-    from recognition.segmentation import _axial_pieces
+    from recognition.segmentation.splits import _axial_pieces
 
     j1, j2, tan = 0.4, 0.7, np.tan(np.radians(6.0))
     good = 0
@@ -908,7 +913,7 @@ def test_a_far_thin_pipe_and_its_reducer_are_cut_with_longer_slices():
     radius long would hold about 10 points (none usable, never cut); with slices of 25 points the run is cut
     in most noise draws (6 of 8 when written), the median cut within 0.1 m of the join (slices are 5 cm).
     The same pipe alone is never cut."""
-    from recognition.segmentation import _axial_pieces
+    from recognition.segmentation.splits import _axial_pieces
 
     join, tan = 1.0, np.tan(np.radians(6.0))
     errors = []
@@ -951,7 +956,7 @@ def test_two_pipes_merged_with_their_elbow_are_cut_apart(seed):
     the normals turn about two axes, so the cut follows the longer pipe's fitted cylinder, not an axial
     profile. Every point of the other pipe leaves it, at most 1 % of its own do (the elbow splits between
     them)."""
-    from recognition.segmentation import _axial_pieces
+    from recognition.segmentation.splits import _axial_pieces
 
     x, normals, part = _elbow_run_points(0.008, seed)
     normals = normals + np.random.default_rng(seed + 100).normal(0.0, 0.1, normals.shape)
@@ -966,7 +971,8 @@ def test_a_sphere_is_not_cut_into_pipes():
     """A close sphere's normals turn about every axis; a band of them passes for a pipe's, and cut about a
     cylinder alone it would be (``several_axes``). The splitter first asks whether one quadric fits the
     patch within noise: it does, and the sphere stays whole."""
-    from recognition.segmentation import _axial_pieces, _split_along_axis, _State
+    from recognition.segmentation.grid import _State
+    from recognition.segmentation.splits import _axial_pieces, _split_along_axis
 
     pts, sig, ids = S.render([S.sphere([0.2, 0.1, 1.2], 0.6, 1)], CAM, 0.002, np.random.default_rng(0))
     on = ids.ravel() == 1
@@ -977,9 +983,9 @@ def test_a_sphere_is_not_cut_into_pipes():
     assert _axial_pieces(X[on], sigma[on], normals[on], 200, several_axes=True) is not None
     params = SegmentationParams()
     st = _State(X=X, U=X / np.maximum(np.linalg.norm(X, axis=1, keepdims=True), 1e-12), S=sigma,
-                hk=np.full(len(X), int(SurfaceType.ELLIPTIC), np.int64), params=params)
+                hk=np.full(len(X), int(SurfaceType.ELLIPTIC), np.int64))
     labels = np.where(ids == 1, 0, -1).astype(np.int32)
-    np.testing.assert_array_equal(_split_along_axis(labels, st, normals, params), labels)
+    np.testing.assert_array_equal(_split_along_axis(labels, st, params, normals), labels)
 
 
 def test_peeling_keeps_the_staircase_border_of_a_thin_diagonal_strip():
@@ -987,7 +993,7 @@ def test_peeling_keeps_the_staircase_border_of_a_thin_diagonal_strip():
     diagonal (three columns per row) has a weak pixel at each end of every row: those close a 2 x 2 block of
     the strip and stay, or the strip would lose a quarter of its pixels. A rectangle still loses its four
     corners, and a one-pixel spur still goes."""
-    from recognition.segmentation import _peel_weak
+    from recognition.segmentation.peel import _peel_weak
 
     labels = np.full((60, 240), -1, np.int32)
     for r in range(60):
@@ -996,7 +1002,7 @@ def test_peeling_keeps_the_staircase_border_of_a_thin_diagonal_strip():
     labels[20, 209] = 1  # a spur
     no_jump_h = np.zeros((60, 239), bool)
     no_jump_v = np.zeros((59, 240), bool)
-    out = _peel_weak(labels, 200, no_jump_h, no_jump_v)
+    out = _peel_weak(labels, SegmentationParams(min_region_pixels=200), no_jump_h, no_jump_v)
     strip = labels == 0
     assert (out[strip] == 0).sum() >= strip.sum() - 6  # the overhangs of its first and last rows go
     assert (out[1:-1][strip[1:-1]] == 0).all()
@@ -1012,7 +1018,7 @@ def test_peeling_keeps_every_interior_row_of_a_diagonal_strip(width, shift, rows
     more, keeps all the pixels of its interior rows (only its first and last rows' overhangs go). Each pixel
     needs a neighbour in the next or the previous row (``width >= 2 shift``): a thinner strip is a chain of
     one-pixel lines, which the peel takes."""
-    from recognition.segmentation import _peel_weak
+    from recognition.segmentation.peel import _peel_weak
 
     shift = min(shift, width // 2)
     W = rows * shift + width + 4
@@ -1022,5 +1028,6 @@ def test_peeling_keeps_every_interior_row_of_a_diagonal_strip(width, shift, rows
         labels[r, c0:c0 + width] = 0
     if (labels == 0).sum() < 200:
         return
-    out = _peel_weak(labels, 200, np.zeros((rows, W - 1), bool), np.zeros((rows - 1, W), bool))
+    out = _peel_weak(labels, SegmentationParams(min_region_pixels=200), np.zeros((rows, W - 1), bool),
+                     np.zeros((rows - 1, W), bool))
     assert (out[1:-1][labels[1:-1] == 0] == 0).all()

@@ -9,10 +9,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from harness.bench.sensors import DEMO_POSE, demo_mockup
+from harness.bench.sensors import main as bench_main
 from scenes.features import Cylinder, Plane, Sphere
 from scenes.model import Object, SceneModel
-from sensors.bench import DEMO_POSE, demo_mockup
-from sensors.bench import main as bench_main
 from sensors.config import load_sensor
 from sensors.io import load_npz, read_ply_points, save_npz, shaded_image, write_ply
 from sensors.models import PinholeCamera

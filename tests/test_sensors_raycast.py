@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
+from harness.bench.sensors import DEMO_POSE, demo_mockup
 from scenes.features import Cone, Cylinder, Plane, Sphere, Torus, box_planes
 from scenes.geometry import look_at, transform_points
 from scenes.mjcf import export_mjcf
 from scenes.model import Object, SceneModel
-from sensors.bench import DEMO_POSE, demo_mockup
 from sensors.config import SensorConfig
 from sensors.models import PinholeCamera, ScanningLaser
 from sensors.noise import NoiseModel
@@ -207,8 +207,8 @@ def test_beyond_max_range_is_dropped_from_image_and_truth():
 def test_a_prediction_from_inside_an_object_sees_through_it(tile_px):
     """A model object containing the sensor (a tank the scene no longer has) is passed through by the
     rays of a prediction, which see the wall behind it; hit from inside otherwise. Verification predicts
-    that way (recognition.verify.predict)."""
-    from recognition.verify import predict
+    that way (recognition.localisation.predict)."""
+    from recognition.localisation import predict
 
     wall = Plane("wall.yn", centre=[0, 3, 1], normal=[0, -1, 0], u_axis=[1, 0, 0], half_size=(5, 5))
     sc = SceneModel("s", (Object("tank", "tank", (Sphere("ball", centre=[0, 0, 1], radius=0.5),)),

@@ -11,7 +11,7 @@ runs segmentation and classification (:func:`recognition.describe.describe`) and
   ``classes.png`` (pixels coloured by their patch's class).
 
 With ``--model SCENE`` (an a priori scene YAML, world frame), the scan is also localised against the model
-(:func:`recognition.localise.localise`: matching, pose, verification, ICP; a pose prior saved in an ``.npz`` scan
+(:func:`recognition.localisation.localise`: matching, pose, verification, ICP; a pose prior saved in an ``.npz`` scan
 restricts the search) and, when a pose is found, its changes are detected
 (:func:`recognition.change.detect_changes`). ``description.json`` then carries ``pose`` (``T_world_sensor``
 before and after ICP, covariance, free degrees of freedom, confidence, pairings) and ``change`` (every model
@@ -31,9 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from recognition.classify import CLASSES
 from recognition.describe import CLASSIFIERS, DescribeParams, SceneDescription, describe
 from scenes.model import SceneModel
+from scenes.vocabulary import CLASSES
 from sensors.config import preset_names
 from sensors.io import save_labels_png, save_shaded_png
 from sensors.readers import FORMATS, LoadedScan, load_scan
@@ -126,7 +126,7 @@ def localise_and_compare(desc: SceneDescription, scan, model: SceneModel):
     """``(PoseResult, ChangeResult or None)``: the scan localised against ``model``, and its changes when a
     pose was found."""
     from recognition.change import detect_changes
-    from recognition.localise import localise
+    from recognition.localisation import localise
 
     located = localise(desc, scan, model)
     if not located.ok or located.T_world_sensor is None:
@@ -136,7 +136,7 @@ def localise_and_compare(desc: SceneDescription, scan, model: SceneModel):
 
 
 def pose_dict(located) -> dict:
-    """A :class:`recognition.localise.PoseResult` as plain data (world frame, metres; covariance over rotation
+    """A :class:`recognition.localisation.PoseResult` as plain data (world frame, metres; covariance over rotation
     vector (rad) and translation (m))."""
     return {
         "ok": bool(located.ok), "reason": located.reason,

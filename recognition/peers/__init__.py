@@ -8,7 +8,7 @@ by the same evaluation, on the same trials and images, as the core:
 * ``pose`` - ``run(description, scan, model, params: dict, predictor) -> PoseResult``-like:
   :mod:`recognition.peers.registration` (``fpfh_ransac``, ``fgr``: Open3D global registration + ICP).
 * ``change`` - ``run(description, scan, model, T_world_sensor, cov, predictor, params: dict) -> ChangeResult``:
-  :mod:`recognition.peers.change` (``diff_change``, ``c2m_change``, ``m3c2_change``).
+  :mod:`recognition.peers.differencing` (``diff_change``, ``c2m_change``, ``m3c2_change``).
 
 :data:`PEERS` holds only the peers whose dependencies import; :data:`MISSING` says, for every peer that did
 not register, why (the package that failed to import and its error), so tests and reports can say so.
@@ -55,9 +55,9 @@ MISSING: dict[str, str] = {}
 
 
 def _collect() -> None:
-    from recognition.peers import change, primitives, registration
+    from recognition.peers import differencing, primitives, registration
 
-    for module in (registration, primitives, change):
+    for module in (registration, primitives, differencing):
         for peer in module.available_peers():
             PEERS[peer.name] = peer
         MISSING.update(module.missing_peers())

@@ -12,7 +12,7 @@ normals estimated from the organised point image (central differences, facing th
 the full image then takes the shape of its nearest sample pixel when it lies within ``epsilon`` of that
 shape's surface. Each shape becomes a patch whose label is its type (plane PLAN, cylinder CYL, sphere SPH,
 cone CONE); the shape is refitted on the patch's points by the core's dedicated least-squares fit
-(:mod:`recognition.primitives`) so the downstream stages (matching, change) read the same parameterisation
+(:mod:`recognition.fitting`) so the downstream stages (matching, change) read the same parameterisation
 as the core's; a refit that fails makes the patch OTH with the reason. These detectors give no
 probabilities: the probability vector is 1 on the label (documented; it makes their Brier score that of a
 hard classifier).
@@ -38,12 +38,11 @@ from typing import Any
 import numpy as np
 import scipy.ndimage as ndi
 
-from recognition import primitives as prim
-from recognition.classify import CLASSES, PatchClassification
+from recognition import fitting
+from recognition.classification import CLASSES, PatchClassification
 from recognition.describe import SceneDescription, ScenePatch, core_sigma
+from recognition.fitting import fit_plane_lsq, fit_quadric_lsq
 from recognition.segmentation import Patch, Segmentation, SurfaceType
-from recognition.surface_fit import fit_plane as surface_plane
-from recognition.surface_fit import fit_quadric_lsq
 from sensors.range_image import Scan
 
 __all__ = ["PrimitiveParams", "detect_primitives", "image_normals", "available_peers", "missing_peers"]
@@ -218,14 +217,14 @@ def _pyransac_detect(pts: np.ndarray, eps: float, min_points: int, grid: tuple[n
 
 def _residual(fit, x: np.ndarray) -> np.ndarray:
     """Unsigned distance (N,) of points to a fitted primitive's surface (approximate for cones)."""
-    if isinstance(fit, prim.PlaneFit):
+    if isinstance(fit, fitting.PlaneFit):
         return np.abs(x @ fit.normal - fit.offset)
-    if isinstance(fit, prim.SphereFit):
+    if isinstance(fit, fitting.SphereFit):
         return np.abs(np.linalg.norm(x - fit.centre, axis=1) - fit.radius)
     w = x - fit.point
     h = w @ fit.axis
     radial = np.linalg.norm(w - h[:, None] * fit.axis, axis=1)
-    if isinstance(fit, prim.CylinderFit):
+    if isinstance(fit, fitting.CylinderFit):
         return np.abs(radial - fit.radius)
     ta = math.tan(fit.half_angle)
     return np.abs(radial - (fit.radius_at_point + ta * h)) * math.cos(fit.half_angle)
@@ -239,12 +238,12 @@ def _length_sigma(pts: np.ndarray, axis: np.ndarray, length: float) -> float:
 
 
 def _invariants(fit, pts: np.ndarray) -> dict[str, tuple[float, float]]:
-    if isinstance(fit, prim.CylinderFit):
+    if isinstance(fit, fitting.CylinderFit):
         return {"radius_m": (fit.radius, fit.radius_sigma),
                 "length_m": (fit.length, _length_sigma(pts, fit.axis, fit.length))}
-    if isinstance(fit, prim.SphereFit):
+    if isinstance(fit, fitting.SphereFit):
         return {"radius_m": (fit.radius, fit.radius_sigma)}
-    if isinstance(fit, prim.ConeFit):
+    if isinstance(fit, fitting.ConeFit):
         return {"half_angle_rad": (fit.half_angle, fit.half_angle_sigma),
                 "length_m": (fit.length, _length_sigma(pts, fit.axis, fit.length))}
     return {}
@@ -340,7 +339,7 @@ def _to_patches(scan, sigma, normals, ok, rows, cols, stride, sample_labels, typ
         label = _LABEL.get(kind, "OTH")
         t0 = time.perf_counter()
         spts = scan.points[rows[samp], cols[samp]]
-        sfit = prim.fit_primitive(label, spts, np.maximum(sigma[rows[samp], cols[samp]], 1e-6),
+        sfit = fitting.fit_primitive(label, spts, np.maximum(sigma[rows[samp], cols[samp]], 1e-6),
                                   normals[rows[samp], cols[samp]])
         if sfit is not None and sfit.ok:
             pix = pix[_residual(sfit, P[pix]) <= max(eps, 3 * float(np.nanmedian(S[pix])))]
@@ -355,10 +354,10 @@ def _to_patches(scan, sigma, normals, ok, rows, cols, stride, sample_labels, typ
         labels.flat[pix] = new_id
         pts, sig = P[pix], np.maximum(S[pix], 1e-6)
         t0 = time.perf_counter()
-        fit = prim.fit_primitive(label, pts, sig, N[pix])
+        fit = fitting.fit_primitive(label, pts, sig, N[pix])
         cls = _classification(label, fit, pts, detector)
         stype = _SURFACE[cls.label]
-        surf = surface_plane(pts, sig) if cls.label == "PLAN" else fit_quadric_lsq(pts, sig)
+        surf = fit_plane_lsq(pts, sig) if cls.label == "PLAN" else fit_quadric_lsq(pts, sig)
         t_cls += time.perf_counter() - t0
         rc = np.stack(np.unravel_index(pix, shape), axis=1)
         small = len(pix) < 50

@@ -39,8 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from recognition.localise import PoseResult
-from recognition.predict import ModelPredictor
+from recognition.localisation import ModelPredictor, PoseResult
 from scenes.model import SceneModel
 from sensors.range_image import Scan
 

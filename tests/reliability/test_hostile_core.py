@@ -12,7 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from recognition.classify import CLASSES, PatchClassification, classify_patch
+from recognition.classification import CLASSES, PatchClassification, classify_patch
 from recognition.describe import DescribeParams, SceneDescription, describe
 from recognition.segmentation import Segmentation, segment
 from sensors.config import MAX_PIXELS

@@ -1,5 +1,6 @@
 """The soak command on CI-sized runs (6 trials by default, 20 with the slow tests) on a 2-worker Dask
-LocalCluster. The full soak is ``python -m harness.soak --trials 1000 --dask-local 2 --out DIR`` (harness/soak.py)."""
+LocalCluster. The full soak is ``python -m harness.bench.soak --trials 1000 --dask-local 2 --out DIR``
+(harness/bench/soak.py)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import json
 
 import pytest
 
-from harness.soak import main, soak_suite, throughput
+from harness.bench.soak import main, soak_suite, throughput
 
 
 def test_soak_suite_has_exactly_the_requested_trials(tmp_path):

@@ -1,4 +1,5 @@
-"""Masked local quadratic fits of an organised point image: P and its first and second derivatives.
+"""Segmentation step 1 (section 3 of Fillatreau & Fisher, after Besl & Jain): masked local quadratic fits of
+an organised point image, P and its first and second derivatives; the jump test between neighbours.
 
 The surface of a perspective range image is the parametric surface ``P(u, v)`` (``u`` the column index,
 ``v`` the row index, ``P`` the 3D point in the sensor frame). Each coordinate of ``P`` is fitted, in a
@@ -22,7 +23,7 @@ surface at a steep incidence can show over that angular distance). Two paths com
 
 The estimator is linear in the data, so the variance of each coefficient for unit, independent noise is the
 diagonal of ``(X' X)^-1`` for the window's design matrix ``X``: it is returned per pixel so that callers can
-propagate the per-pixel range sigma (:mod:`recognition.segmentation`).
+propagate the per-pixel range sigma (:mod:`recognition.segmentation.curvature`).
 """
 
 from __future__ import annotations

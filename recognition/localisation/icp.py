@@ -2,7 +2,7 @@
 
 The target is not a sample of the whole CAD model: hidden back faces pull ICP off (DESIGN 6.3: a 2 cm slab
 gave exactly 20 mm errors). It is the model's predicted range image at the hypothesised pose
-(:class:`recognition.verify.Prediction`, shared with verification), as world points with analytic normals
+(:class:`recognition.localisation.Prediction`, shared with verification), as world points with analytic normals
 of the features they lie on. The source is the scan's points (sensor frame) on a regular pixel stride.
 Open3D's point-to-plane ICP with a Tukey robust kernel runs from the hypothesised pose in a few passes of
 shrinking correspondence distance (scaled with the median range, floored by the target's point spacing),
@@ -22,10 +22,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from recognition.verify import Prediction
 from scenes.features import Cylinder, Plane
 from scenes.model import SceneModel
 from sensors.range_image import Scan
+
+from .prediction import Prediction
 
 __all__ = ["IcpParams", "IcpResult", "model_normals", "icp_refine"]
 
@@ -201,7 +202,7 @@ def icp_refine(scan: Scan, prediction: Prediction, model: SceneModel, T_init: np
     inl = np.abs(r) <= 3 * scale
     Ji = J[inl] / scale
     info = Ji.T @ Ji
-    from recognition.pose import free_dof_of
+    from .pose import free_dof_of
 
     free, _ = free_dof_of(Ji, med_range, 0.1)
     cov = np.linalg.pinv(info, rcond=1e-12, hermitian=True)

@@ -32,8 +32,7 @@ import numpy as np
 from scipy import ndimage
 
 from recognition.describe import SceneDescription
-from recognition.predict import ModelPredictor
-from recognition.verify import Prediction
+from recognition.localisation import ModelPredictor, Prediction
 from scenes.features import Cone, Cylinder, Feature, Plane, Sphere, Torus
 from scenes.geometry import transform_points
 from scenes.model import SceneModel

@@ -1,6 +1,6 @@
 """Benchmark of the simulated sensor: time and memory per 640 x 480 scan.
 
-``python -m sensors.bench [--scene SCENE.yaml] [--sensor PRESET] [--viewpoint-seed N | --position X Y Z
+``python -m harness.bench.sensors [--scene SCENE.yaml] [--sensor PRESET] [--viewpoint-seed N | --position X Y Z
 --look-at X Y Z] [--repeats N] [--json OUT]``
 
 Three configurations on one scene and viewpoint: noise off, the full noise model with a 1-ray beam,
@@ -174,7 +174,7 @@ def _table(res: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m sensors.bench", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m harness.bench.sensors", description=__doc__.splitlines()[0])
     p.add_argument("--scene", help="scene YAML (default: the built-in demo mock-up)")
     p.add_argument("--sensor", default="mockup_laser", help="preset name or sensor YAML (default mockup_laser)")
     p.add_argument("--position", type=float, nargs=3, metavar=("X", "Y", "Z"))

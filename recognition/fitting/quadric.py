@@ -1,12 +1,10 @@
-"""General quadric fit with covariance, and its canonical form with propagated uncertainty.
+"""General quadric fits with covariance, and the canonical form with propagated uncertainty.
 
-A quadric is ``X' A X + X' B + C = 0`` with ``A`` symmetric (3, 3), ``B`` (3,) and ``C`` a scalar. Its 10
-parameters are stored in the order
-
-    p = (a11, a22, a33, a12, a13, a23, b1, b2, b3, c)
-
-so that ``f(x) = m(x) . p`` with the monomials ``m = (x², y², z², 2xy, 2xz, 2yz, x, y, z, 1)``. The
-parameter vector is only defined up to scale: fits return it with unit norm (the scale gauge), and the
+Two fits, in the parameter convention of :mod:`recognition.fitting.algebra`: :func:`fit_quadric`, the
+sigma-weighted geometric estimate that classification uses (section 3 of Fillatreau & Fisher), and
+:func:`fit_quadric_lsq`, the plain algebraic least-squares fit the segmenter attaches to its curved patches
+("planes or quadrics are fitted to the patches"; :func:`recognition.fitting.fit_plane_lsq` for planar ones).
+The parameter vector is only defined up to scale: fits return it with unit norm (the scale gauge), and the
 (10, 10) covariance is built from the rank-9 pseudo-inverse of the information matrix restricted to the
 tangent space of the unit sphere (so ``cov @ p == 0``), by default in sandwich form (see
 :func:`fit_quadric`).
@@ -36,28 +34,31 @@ the Bauer-Fike sigmas are a bound, 4-34x the observed eigenvalue spread.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
+
+from .algebra import (
+    check_patch,
+    check_points,
+    design_matrices,
+    gradient,
+    monomials,
+    normalisation_map,
+    quadric_matrices,
+    ray_residuals,
+    taubin_fit,
+)
 
 __all__ = [
     "QuadricFit",
     "CanonicalQuadric",
+    "QuadricSurfaceFit",
     "fit_quadric",
+    "fit_quadric_lsq",
     "canonicalise",
     "canonical_quantities",
-    "quadric_matrices",
-    "quadric_params",
-    "monomials",
-    "evaluate",
-    "design_matrices",
-    "taubin_fit",
-    "MONOMIAL_GRADIENT",
 ]
-
-# index pairs of the symmetric matrix entries carried by params 0..5
-_A_INDEX = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 
 
 @dataclass(frozen=True)
@@ -154,102 +155,56 @@ class CanonicalQuadric:
         return float(self.eigenvalues[i] - self.eigenvalues[j]), float(np.sqrt(max(g @ self.cov @ g, 0.0)))
 
 
-# ---------------------------------------------------------------------------------------------------------
-# basic algebra
+@dataclass(frozen=True)
+class QuadricSurfaceFit:
+    """A general quadric ``x' A x + b' x + c = 0`` fitted by algebraic least squares (unit-norm gauge).
 
-
-def quadric_matrices(params: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Split parameters into ``(A, B, C)``.
-
-    Parameters
+    Attributes
     ----------
     params : ndarray of shape (10,)
-
-    Returns
-    -------
-    A : ndarray of shape (3, 3), symmetric
-    B : ndarray of shape (3,)
-    C : float
+        Unit-norm parameters in the sensor frame, order ``(a11, a22, a33, a12, a13, a23, b1, b2, b3, c)``;
+        ``f > 0`` on the sensor side.
+    cov : ndarray of shape (10, 10)
+        First-order covariance of ``params`` from the algebraic residuals (rank 9, ``cov @ params ~ 0``).
+    rms_m : float, metres
+        RMS first-order (Sampson) distance.
+    rms_sigma : float
+        RMS residual along the ray in sigma units (NaN without sigma).
+    n_points : int
+    ok : bool
+    reason : str
     """
-    p = np.asarray(params, dtype=np.float64)
-    A = np.array([[p[0], p[3], p[4]], [p[3], p[1], p[5]], [p[4], p[5], p[2]]])
-    return A, p[6:9].copy(), float(p[9])
+
+    params: np.ndarray
+    cov: np.ndarray
+    rms_m: float
+    rms_sigma: float
+    n_points: int
+    ok: bool = True
+    reason: str = ""
+    kind: str = field(default="quadric", init=False)
+
+    def __bool__(self) -> bool:
+        return self.ok
+
+    @property
+    def A(self) -> np.ndarray:
+        """Symmetric (3, 3) matrix of the quadratic part."""
+        p = self.params
+        return np.array([[p[0], p[3], p[4]], [p[3], p[1], p[5]], [p[4], p[5], p[2]]])
+
+    @property
+    def b(self) -> np.ndarray:
+        """Linear part (3,)."""
+        return self.params[6:9].copy()
+
+    @property
+    def c(self) -> float:
+        """Constant term."""
+        return float(self.params[9])
 
 
-def quadric_params(A: np.ndarray, B: np.ndarray, C: float) -> np.ndarray:
-    """Inverse of :func:`quadric_matrices`: ndarray of shape (10,) (not normalised)."""
-    A = np.asarray(A, dtype=np.float64)
-    return np.array([A[0, 0], A[1, 1], A[2, 2], A[0, 1], A[0, 2], A[1, 2], *np.asarray(B, float), float(C)])
-
-
-def monomials(points: np.ndarray) -> np.ndarray:
-    """Monomial matrix ``m(x)`` of shape (N, 10) such that ``f(x) = m(x) @ params``."""
-    x, y, z = points[:, 0], points[:, 1], points[:, 2]
-    one = np.ones_like(x)
-    return np.stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z, x, y, z, one], axis=1)
-
-
-def evaluate(params: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Algebraic value and gradient of the quadric at points.
-
-    Parameters
-    ----------
-    params : ndarray of shape (10,)
-    points : ndarray of shape (N, 3)
-
-    Returns
-    -------
-    f : ndarray of shape (N,)
-    grad : ndarray of shape (N, 3)
-    """
-    A, B, _ = quadric_matrices(params)
-    f = monomials(points) @ params
-    grad = 2.0 * points @ A + B
-    return f, grad
-
-
-def _normalisation_map(mean: np.ndarray, scale: float) -> np.ndarray:
-    """Linear map L (10, 10) with ``p_world = L @ p_n`` for ``y = (x - mean) / scale``.
-
-    ``A = A_n / s²``, ``B = B_n / s - 2 A_n mean / s²``, ``C = C_n + mean' A_n mean / s² - B_n' mean / s``.
-    """
-    mu, s = np.asarray(mean, dtype=np.float64), float(scale)
-    L = np.zeros((10, 10))
-    L[np.arange(6), np.arange(6)] = 1.0 / s**2
-    for k, (i, j) in enumerate(_A_INDEX):
-        E = np.zeros((3, 3))
-        E[i, j] = E[j, i] = 1.0
-        L[6:9, k] = -2.0 * (E @ mu) / s**2
-        L[9, k] = mu @ E @ mu / s**2
-    L[6:9, 6:9] = np.eye(3) / s
-    L[9, 6:9] = -mu / s
-    L[9, 9] = 1.0
-    return L
-
-
-# ---------------------------------------------------------------------------------------------------------
-# fitting
-
-
-def check_patch(points, sigma, normals=None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Validate a patch once: points (N, 3), sigma (N,) or a scalar, optional normals (N, 3), as float64.
-
-    Raises ValueError naming the expected shape (misuse); degenerate content is the fits' business.
-    """
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"expected points of shape (N, 3), got {pts.shape}")
-    sig = np.asarray(sigma, dtype=np.float64)
-    if sig.ndim == 0:
-        sig = np.full(len(pts), float(sig))
-    if sig.shape != (len(pts),):
-        raise ValueError(f"expected sigma of shape ({len(pts)},), got {sig.shape}")
-    nrm = None
-    if normals is not None:
-        nrm = np.asarray(normals, dtype=np.float64)
-        if nrm.shape != pts.shape:
-            raise ValueError(f"expected normals of shape {pts.shape}, got {nrm.shape}")
-    return pts, sig, nrm
+# ------------------------------------------------------------------------------------------ fitting
 
 
 def _degenerate(n: int, reason: str, mean=None, scale: float = 1.0) -> QuadricFit:
@@ -259,59 +214,6 @@ def _degenerate(n: int, reason: str, mean=None, scale: float = 1.0) -> QuadricFi
         mean=np.zeros(3) if mean is None else mean, scale=scale, n_points=n, chi2=np.nan, rms_m=np.nan,
         rms_sigma=np.nan, n_iter=0, ok=False, reason=reason,
     )
-
-
-# the gradient of the monomials is linear in (x, y, z, 1): grad_k m(y) = (x, y, z, 1) @ MONOMIAL_GRADIENT[k]
-MONOMIAL_GRADIENT = np.zeros((3, 4, 10))
-for _k, _entries in enumerate((((0, 0), (1, 3), (2, 4)), ((1, 1), (0, 3), (2, 5)), ((2, 2), (0, 4), (1, 5)))):
-    for _m, _j in _entries:
-        MONOMIAL_GRADIENT[_k, _m, _j] = 2.0
-    MONOMIAL_GRADIENT[_k, 3, 6 + _k] = 1.0
-
-
-def taubin_fit(D: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray | None, str]:
-    """Weighted Taubin fit (G. Taubin, PAMI 13(11), 1991): unit parameters (10,), or (None, why) for
-    degenerate points.
-
-    ``D`` the monomials (N, 10) of the points ``y`` (N, 3) in normalised coordinates, ``w`` (N,) weights.
-    The gradient scatter ``sum w |grad m|²`` is formed from the 4 x 4 moment matrix of ``(y, 1)``, the
-    gradient of the monomials being linear in it.
-    """
-    sw = np.sqrt(w)[:, None]
-    Dw = D * sw
-    M = Dw.T @ Dw
-    # rank check on the design (squared singular values): a quadric through the points must be unique
-    ev = np.linalg.eigvalsh(M / np.trace(M))
-    if ev[1] < 1e-12:
-        return None, ("points are coplanar, collinear or otherwise in a degenerate configuration: "
-                      "quadric not unique")
-    Y = np.column_stack([y, np.ones(len(y))]) * sw
-    S4 = Y.T @ Y
-    N9 = sum(g.T @ S4 @ g for g in MONOMIAL_GRADIENT)[:9, :9]
-    # eliminate c: c = -M[9, :9] q / M[9, 9]
-    S = M[:9, :9] - np.outer(M[:9, 9], M[9, :9]) / M[9, 9]
-    S = 0.5 * (S + S.T)
-    try:
-        vals, vecs = scipy.linalg.eigh(S, N9)
-    except np.linalg.LinAlgError:
-        return None, "Taubin normalisation matrix is singular (degenerate point configuration)"
-    q = vecs[:, int(np.argmin(vals))]
-    c = -M[9, :9] @ q / M[9, 9]
-    p = np.append(q, c)
-    return p / np.linalg.norm(p), ""
-
-
-def design_matrices(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Monomials D (N, 10) and gradient design G (3, N, 10) with ``f = D p``, ``grad f = G p``."""
-    D = monomials(y)
-    x, yy, z = y[:, 0], y[:, 1], y[:, 2]
-    zero, one = np.zeros_like(x), np.ones_like(x)
-    G = np.stack([
-        np.stack([2 * x, zero, zero, 2 * yy, 2 * z, zero, one, zero, zero, zero], axis=1),
-        np.stack([zero, 2 * yy, zero, 2 * x, zero, 2 * z, zero, one, zero, zero], axis=1),
-        np.stack([zero, zero, 2 * z, zero, 2 * x, 2 * yy, zero, zero, one, zero], axis=1),
-    ])
-    return D, G
 
 
 def _sampson(p: np.ndarray, D: np.ndarray, G: np.ndarray, s: np.ndarray):
@@ -421,7 +323,7 @@ def fit_quadric(
         if not improved or rel < tol:
             break
 
-    L = _normalisation_map(mean, scale)
+    L = normalisation_map(mean, scale)
     pw = L @ p
     nw = np.linalg.norm(pw)
     rm = r * s * scale  # Sampson distances in metres
@@ -451,8 +353,69 @@ def fit_quadric(
     return QuadricFit(params=pw / nw, cov=0.5 * (cov + cov.T), params_n=p, cov_n=cov_n, **stats)
 
 
-# ---------------------------------------------------------------------------------------------------------
-# canonical form
+def _failed_cov(n: int) -> np.ndarray:
+    return np.full((n, n), np.nan)
+
+
+def _orient_params(p: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Flip the sign so that ``f`` grows towards the sensor (origin) on average over the points."""
+    g = gradient(p, x)
+    return -p if np.sum(g * x) > 0 else p
+
+
+def fit_quadric_lsq(points: np.ndarray, sigma: np.ndarray | None = None) -> QuadricSurfaceFit:
+    """General quadric by algebraic least squares with the unit-norm gauge, in normalised coordinates.
+
+    The points are centred on their mean and scaled to unit RMS radius, the parameter vector minimising
+    ``sum f(y_i)²`` with ``|p| = 1`` is the smallest eigenvector of the scatter of monomials, then it is
+    mapped back to the sensor frame and renormalised. Covariance: first-order eigenvector perturbation,
+    ``s² sum_k l_k / (l_k - l_0)² v_k v_k'`` with ``s²`` the algebraic residual variance, mapped with the
+    same linear transform and the Jacobian of the renormalisation.
+
+    Parameters
+    ----------
+    points : ndarray of shape (N, 3), metres, sensor frame
+    sigma : ndarray of shape (N,), metres, optional
+
+    Returns
+    -------
+    QuadricSurfaceFit
+        Falsy with a reason below 10 points or for a rank-deficient design.
+    """
+    x, s = check_points(points, sigma)
+    n = len(x)
+    if n < 10:
+        return QuadricSurfaceFit(np.full(10, np.nan), _failed_cov(10), np.nan, np.nan, n, False,
+                                 "fewer than 10 points")
+    mean = x.mean(axis=0)
+    scale = float(np.sqrt(np.mean(np.sum((x - mean) ** 2, axis=1))))
+    if not scale > 0:
+        return QuadricSurfaceFit(np.full(10, np.nan), _failed_cov(10), np.nan, np.nan, n, False,
+                                 "coincident points")
+    D = monomials((x - mean) / scale)
+    Mn = D.T @ D
+    lam, V = np.linalg.eigh(Mn)
+    if lam[1] <= 1e-13 * lam[-1]:
+        return QuadricSurfaceFit(np.full(10, np.nan), _failed_cov(10), np.nan, np.nan, n, False,
+                                 "rank-deficient design (the points do not determine a quadric)")
+    pn = V[:, 0]
+    s2 = max(float(lam[0]), 0.0) / max(n - 9, 1)
+    w = lam[1:] / (lam[1:] - lam[0]) ** 2
+    cov_n = s2 * (V[:, 1:] * w) @ V[:, 1:].T
+    T = normalisation_map(mean, scale)
+    q = T @ pn
+    qn = float(np.linalg.norm(q))
+    p = q / qn
+    Jn = (np.eye(10) - np.outer(p, p)) / qn
+    JT = Jn @ T
+    cov = JT @ cov_n @ JT.T
+    p = _orient_params(p, x)
+    dist, _, z = ray_residuals(p, x, s)
+    rms_s = float(np.sqrt(np.mean(z**2))) if s is not None else float("nan")
+    return QuadricSurfaceFit(p, cov, float(np.sqrt(np.mean(dist**2))), rms_s, n)
+
+
+# ----------------------------------------------------------------------------------- canonical form
 
 
 def _sym_grad_to_params(G: np.ndarray) -> np.ndarray:

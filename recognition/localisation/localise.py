@@ -1,14 +1,15 @@
-"""Localisation: matching, pose, verification and ICP refinement in one call (the paper's section 4).
+"""Localisation in one call, :func:`localise`: matching, pose, verification and ICP refinement (the paper's
+section 4).
 
 ``localise(description, scan, model)`` estimates ``T_world_sensor`` from a scene description and the a
 priori model only (plus ``scan.pose_prior`` when the suite gives one, DESIGN 10.1):
 
-1. interpretation-tree matching of PLAN/CYL/CONE/SPH patches to model elements
-   (:mod:`recognition.matching`), each hypothesis with a closed-form, refined pose (:mod:`recognition.pose`);
+1. interpretation-tree matching of PLAN/CYL/CONE/SPH patches to model elements (:mod:`.matching`,
+   :mod:`.interpretation_tree`), each hypothesis with a closed-form, refined pose (:mod:`.pose`);
 2. verification: every hypothesis is screened by its agreement with the model's predicted range image on a
-   coarse grid of the sensor's own rays (:mod:`recognition.verify`, a few ms each), the best few verified
-   on a finer grid, with an allowance for a closed-form pose's error (``pre_icp_rel``);
-3. the best few are refined by a quick ICP (:mod:`recognition.icp`) and verified again: the agreement after
+   coarse grid of the sensor's own rays (:mod:`.prediction`, :mod:`.verification`, a few ms each), the best
+   few verified on a finer grid, with an allowance for a closed-form pose's error (``pre_icp_rel``);
+3. the best few are refined by a quick ICP (:mod:`.icp`) and verified again: the agreement after
    ICP decides (this is what settles the 90/180 deg alternatives of symmetric walls and bays); another
    distinct pose agreeing within ``ambiguity_margin`` makes the result ambiguous (not ok). The winner gets
    the full ICP against the model surfaces predicted visible from it. ICP never uses the points of the
@@ -30,11 +31,15 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from recognition.describe import SceneDescription
-from recognition.icp import IcpParams, icp_refine
-from recognition.matching import MatchParams, given_match, match, model_elements
-from recognition.verify import Prediction, VerifyParams, agreement, predict
 from scenes.model import SceneModel
 from sensors.range_image import Scan
+
+from .icp import IcpParams, icp_refine
+from .interpretation_tree import given_match, match
+from .matching import MatchParams, make_pair, model_elements
+from .pose import estimate_pose
+from .prediction import Prediction, predict
+from .verification import VerifyParams, agreement
 
 __all__ = ["LocaliseParams", "PoseResult", "localise", "overlap_pairings"]
 
@@ -127,7 +132,7 @@ class PoseResult:
     confidence : float in [0, 1], agreement of the data with the model predicted at the final pose.
     pairings : tuple of (patch id, model feature id or None = wildcard).
     n_hypotheses : int, hypotheses from the tree; n_nodes : int, nodes it visited.
-    predicted : :class:`recognition.verify.Prediction` at the final pose (full resolution) or None.
+    predicted : :class:`recognition.localisation.Prediction` at the final pose (full resolution) or None.
     timing_s : dict, seconds per stage (matching, pose, verification, icp, predict).
     """
 
@@ -212,7 +217,7 @@ def free_translation(free_dof: int, free_basis: np.ndarray) -> np.ndarray | None
     """The unit world direction (3,) of a pose's one free DOF when it is a pure translation, else None.
 
     ``free_basis`` (6, free_dof) over (rotation vector, translation), as in
-    :class:`recognition.pose.PoseEstimate`."""
+    :class:`recognition.localisation.PoseEstimate`."""
     if free_dof != 1:
         return None
     b = np.asarray(free_basis, float)[:, 0]
@@ -327,9 +332,6 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
     def start_pose(h):
         T = h.pose.T_world_sensor
         if h.pose.free_dof > 0 and prior is not None:
-            from recognition.matching import make_pair
-            from recognition.pose import estimate_pose
-
             pairs = [make_pair(res.items[i], el, e) for i, e in h.pairs if e >= 0]
             T = estimate_pose(pairs, T_init=prior, length_m=1.0).T_world_sensor
         elif slide and len(slid) < params.max_verify:

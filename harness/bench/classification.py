@@ -1,6 +1,6 @@
 """Benchmark of the patch classifiers on synthetic one-sided noisy patches.
 
-Run ``python -m recognition.bench_classify [--n 40] [--seed 0] [--presets mockup_laser,...]``. For each
+Run ``python -m harness.bench.classification [--n 40] [--seed 0] [--presets mockup_laser,...]``. For each
 noise preset (see :data:`recognition._synthetic.PRESETS`) and each classifier (``select``, ``paper``) it
 prints the accuracy per true class (plane, cylinder, sphere, cone, torus = OTH), the overall accuracy and
 the multi-class Brier score (DESIGN 10.8), the relative radius error of the cylinder and sphere fits against
@@ -16,9 +16,9 @@ import time
 
 import numpy as np
 
-from ._synthetic import KINDS, PRESETS, TRUE_CLASS, sample_patch
-from .classify import CLASSES, classify_patch
-from .primitives import fit_cylinder, fit_sphere
+from recognition._synthetic import KINDS, PRESETS, TRUE_CLASS, sample_patch
+from recognition.classification import CLASSES, classify_patch
+from recognition.fitting import fit_cylinder, fit_sphere
 
 __all__ = ["main", "run_preset", "frame_batch_time"]
 
@@ -89,7 +89,7 @@ def frame_batch_time(
 
 def main(argv: list[str] | None = None) -> int:
     """Print the benchmark tables (Markdown); returns 0."""
-    ap = argparse.ArgumentParser(prog="python -m recognition.bench_classify", description=__doc__)
+    ap = argparse.ArgumentParser(prog="python -m harness.bench.classification", description=__doc__)
     ap.add_argument("--n", type=int, default=40, help="patches per kind and preset")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--presets", default=",".join(PRESETS))

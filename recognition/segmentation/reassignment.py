@@ -1,0 +1,94 @@
+"""Segmentation step 9 (decimated grids only), border reassignment: a border pixel moves to the neighbouring
+patch whose surface fits it clearly better (the paper's patches are maximal sets one surface fits, section 3 of
+Fillatreau & Fisher; the coarse grid's blocks and tiles leave borders a few pixels off)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .grid import _groups, _State
+from .quick_fits import _fit_groups, _pixel_residuals
+from .types import SegmentationParams
+
+
+def _reassign(labels: np.ndarray, st: _State, params: SegmentationParams, links, jump_h: np.ndarray,
+              jump_v: np.ndarray, refit_pixels: int = 4000) -> np.ndarray:
+    """Move border pixels to the neighbouring patch whose surface fits them clearly better (returns new labels).
+
+    Tiles, blocks of the coarse grid and merges leave patches whose border runs a few pixels past the
+    surface's own (a tile straddling a pipe and its reducer, a pipe strip that took a row of its elbow). A
+    pixel linked (no jump) to another patch moves there when its range residual to that patch's surface is
+    within ``2 grow_k`` sigma and ``reassign_margin`` sigma smaller than to its own; the patches that changed are
+    refitted (those of more than ``refit_pixels`` pixels hardly move and are not) and the pixels next to the
+    moved ones tested again, for at most ``reassign_rounds`` rounds. Pixels near a crease fit both faces within the
+    margin and stay. ``links``: :func:`_neighbour_links` of the grid.
+
+    A fragment (fewer than ``min_patch_pixels`` pixels: a strip of limb and mixed returns along a jump) has
+    no residual of its own worth comparing, since its fit follows its few pixels: each of its pixels moves to
+    a linked patch whose surface fits it within ``2 grow_k`` sigma. Hoover's metric counts a fragment lying
+    inside a truth region as an over-segmentation of it (correct detection 0.758 -> 0.800 on the default
+    suite, 0.740 -> 0.811 on the calibration suite).
+    """
+    rounds, margin = params.reassign_rounds, params.reassign_margin
+    H, W = labels.shape
+    out = labels.copy()
+    flat = out.ravel()
+    n = int(flat.max()) + 1
+    if n < 2:
+        return out
+    thr = 2.0 * params.grow_k
+    groups = _groups(out)
+    P = _fit_groups(groups, st, params, n, trim=thr)
+    steps = np.array([dr * W + dc for dr, dc, _ in links])
+    ok = np.stack([o.ravel() for _, _, o in links])  # (4, H*W) link allowed
+    # first candidates: labelled pixels with a linked neighbour of another patch
+    diff_h = (out[:, :-1] != out[:, 1:]) & ~jump_h & (out[:, :-1] >= 0) & (out[:, 1:] >= 0)
+    diff_v = (out[:-1, :] != out[1:, :]) & ~jump_v & (out[:-1, :] >= 0) & (out[1:, :] >= 0)
+    border = np.zeros((H, W), bool)
+    border[:, :-1] |= diff_h
+    border[:, 1:] |= diff_h
+    border[:-1, :] |= diff_v
+    border[1:, :] |= diff_v
+    cand = np.flatnonzero(border)
+    small = {k: v for k, v in groups.items() if v.size <= refit_pixels}
+    fragment = np.zeros(n, bool)
+    fragment[[k for k, v in groups.items() if v.size < params.min_patch_pixels]] = True
+    for _ in range(rounds):
+        if cand.size == 0:
+            break
+        nb = cand[None, :] + steps[:, None]
+        nl = np.where(ok[:, cand], flat[np.clip(nb, 0, H * W - 1)], -1)
+        own = flat[cand]
+        x, u, s = st.X[cand], st.U[cand], st.S[cand]
+        best_z = _pixel_residuals(P, own, x, u, s)
+        best_z[fragment[own]] = np.inf
+        best_l = own.copy()
+        for k in range(len(steps)):
+            m = (nl[k] >= 0) & (nl[k] != own)
+            if not m.any():
+                continue
+            z = np.full(cand.size, np.inf)
+            z[m] = _pixel_residuals(P, nl[k, m], x[m], u[m], s[m])
+            b = (z + margin < best_z) & (z <= thr)
+            best_z[b] = z[b]
+            best_l[b] = nl[k, b]
+        mv = best_l != own
+        if not mv.any():
+            break
+        moved, src, dst = cand[mv], own[mv], best_l[mv]
+        flat[moved] = dst
+        # refit the small patches that lost or gained pixels (a large one hardly changes)
+        redo = {}
+        for lab in np.unique(np.concatenate([src, dst])).tolist():
+            if lab in small:
+                v = small[lab]
+                v = np.concatenate([v[~np.isin(v, moved[src == lab])], moved[dst == lab]])
+                small[lab] = redo[lab] = v
+        redo = {k: v for k, v in redo.items() if v.size}
+        if redo:
+            Pc = _fit_groups(redo, st, params, n, trim=thr)
+            keys = list(redo)
+            P[keys] = Pc[keys]
+        nxt = (moved[None, :] + steps[:, None])[ok[:, moved]]
+        cand = np.union1d(cand, nxt[flat[nxt] >= 0])
+    return out
