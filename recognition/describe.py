@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import functools
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.ndimage as ndi
@@ -24,6 +24,7 @@ from recognition.classification import (
     merge_test,
 )
 from recognition.segmentation import Segmentation, SegmentationParams, SurfaceType, segment
+from recognition.tuning import tuned
 from sensors.config import MAX_PIXELS
 from sensors.range_image import Scan
 
@@ -50,14 +51,26 @@ class DescribeParams:
         stay in :attr:`SceneDescription.segmentation`). On the ``calibration`` suite (seed 4242, never
         ``default``; DESIGN 10.8) it raised the pooled correct detection 0.730 -> 0.743 (factory scanner
         0.715 -> 0.740); 8-neighbour contact measured the same as within 2 pixels, and cones added nothing.
+    merge_min_contacts : int
+        Two patches touch (for ``merge_explained``) when at least this many pairs of their pixels are
+        8-neighbours.
+
+    Every field's unit and where its value was chosen: :func:`recognition.tuning.tuned` (``docs/tuning.md``).
     """
 
-    classifier: str = "select"
-    segmentation: SegmentationParams = field(default_factory=SegmentationParams)
-    classifier_params: SelectParams | PaperParams | None = None
-    min_classify_pixels: int = 30
-    max_pixels: int = MAX_PIXELS
-    merge_explained: bool = True
+    classifier: str = tuned("select", unit="-", chosen="the core's classifier; paper is the baseline")
+    segmentation: SegmentationParams = tuned(default_factory=SegmentationParams, unit="-",
+                                             chosen="SegmentationParams' own defaults")
+    classifier_params: SelectParams | PaperParams | None = tuned(
+        None, unit="-", chosen="None: the chosen classifier's own defaults (SelectParams or PaperParams)")
+    min_classify_pixels: int = tuned(30, unit="px", chosen="not tuned: set with the runner in c35aad5")
+    max_pixels: int = tuned(MAX_PIXELS, unit="px", chosen="not tuned: the sensors' largest image, a memory bound "
+                            "(1.5 GB peak measured at 2000 x 2000; 865ef63)")
+    merge_explained: bool = tuned(
+        True, unit="-", chosen="calibration (phase 1): pooled correct detection 0.730 -> 0.743 (97ec30f)")
+    merge_min_contacts: int = tuned(
+        3, unit="pixel pairs", chosen="calibration (phase 1), with merge_explained: 8-neighbour contact measured the "
+        "same as within 2 pixels; the count itself not varied (97ec30f)")
 
     def __post_init__(self):
         if not isinstance(self.classifier, str) or self.classifier not in CLASSIFIERS:
@@ -66,6 +79,8 @@ class DescribeParams:
             raise ValueError(f"min_classify_pixels must be >= 1, got {self.min_classify_pixels}")
         if self.max_pixels < 1:
             raise ValueError(f"max_pixels must be >= 1, got {self.max_pixels}")
+        if self.merge_min_contacts < 1:
+            raise ValueError(f"merge_min_contacts must be >= 1, got {self.merge_min_contacts}")
 
 
 @dataclass(frozen=True)
@@ -190,7 +205,7 @@ def describe(scan: Scan, params: DescribeParams = DescribeParams(),
 MERGE_LABELS = ("PLAN", "CYL", "SPH", "CONE")
 
 
-def _touching_pairs(labels: np.ndarray, min_contacts: int = 3) -> list[tuple[int, int]]:
+def _touching_pairs(labels: np.ndarray, min_contacts: int) -> list[tuple[int, int]]:
     """Pairs ``(a, b)``, ``a < b``, of patches with at least ``min_contacts`` 8-neighbour pixel contacts."""
     H, W = labels.shape
     n = int(labels.max()) + 1
@@ -220,7 +235,7 @@ def _merge_explained(patches: list, labels: np.ndarray, params: DescribeParams, 
     tested: dict[tuple[int, int], tuple | None] = {}
     while True:
         best = None
-        for a, b in _touching_pairs(labels):
+        for a, b in _touching_pairs(labels, params.merge_min_contacts):
             pa, pb = by_id[a], by_id[b]
             if pa.label != pb.label or a not in fits or b not in fits:
                 continue
@@ -330,7 +345,7 @@ def patch_subrays(sensor, offsets, rows: np.ndarray, cols: np.ndarray) -> np.nda
 
 
 def _too_small(n: int) -> PatchClassification:
-    probs = dict.fromkeys(("PLAN", "CYL", "SPH", "CONE", "OTH"), 0.0)
+    probs = dict.fromkeys(CLASSES, 0.0)
     probs["OTH"] = 1.0
     return PatchClassification("OTH", probs, {"CYL": 0.0, "SPH": 0.0, "CONE": 0.0}, None, {},
                                reason=f"too small to classify ({n} pixels)")

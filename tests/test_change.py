@@ -14,6 +14,7 @@ from scenes import builders
 from scenes.geometry import look_at, make_transform
 from scenes.model import SceneModel
 from scenes.perturb import Change, ChangeTruth
+from scenes.vocabulary import ALTERED, CHANGE_MAP_LABELS, MISSING, MOVED, NEW, UNCHANGED
 from sensors.config import sensor_from_yaml
 from sensors.simulate import Simulator
 
@@ -83,6 +84,29 @@ def test_each_kind_of_change_is_found(seen):
     assert len(on_new) == len(result.new_patches), "a new patch that is not on the new cabinet"
 
 
+def test_the_change_map_is_indexed_by_the_shared_change_labels(seen):
+    """A pixel of the core's change map is an index into ``scenes.vocabulary.CHANGE_MAP_LABELS`` (the order the
+    scoring and the reports read it in): a feature's predicted pixels hold its label's index, a new region's
+    pixels NEW's, the patches a moved feature was found on MOVED's; -1 where nothing is said."""
+    _, _, _, scan, truth, desc, predictor, result = seen
+    lm = result.label_map.reshape(-1)
+    assert result.label_map.shape == scan.range.shape and result.label_map.dtype == np.int8
+    assert set(np.unique(lm).tolist()) <= set(range(-1, len(CHANGE_MAP_LABELS)))
+    shown = {CHANGE_MAP_LABELS[i] for i in np.unique(lm) if i >= 0}
+    assert shown == {UNCHANGED, MOVED, MISSING, ALTERED, NEW}  # every change of the scene, in its place
+    for pix in result.new_patch_pixels.values():
+        assert (lm[pix] == CHANGE_MAP_LABELS.index(NEW)).all()
+    moved = result.features["pipe_a.s0"]
+    assert moved.label == MOVED and moved.patches
+    for pid in moved.patches:
+        patch = next(p for p in desc.patches if p.id == pid)
+        assert (lm[patch.pixels] == CHANGE_MAP_LABELS.index(MOVED)).all()
+    predicted = predictor.predict(scan.sensor, truth.T_world_sensor).feature_pixels()
+    for fid in ("tank.ball", "pipe_b.s0", "wall.yn"):
+        values, counts = np.unique(lm[predicted[fid]], return_counts=True)
+        assert CHANGE_MAP_LABELS[values[np.argmax(counts)]] == result.features[fid].label, fid
+
+
 def test_invisible_features_are_unobserved_never_missing(seen):
     _, _, _, _, _, _, _, result = seen
     assert result.features["wall.yp"].label == "unobserved"  # the wall's back face cannot be seen
@@ -129,7 +153,7 @@ def test_truth_fed_as_the_estimate_scores_perfectly(seen):
     sid = truth.surface_id.reshape(-1)
     new_pix = np.flatnonzero(np.isin(sid, [i for i, s in enumerate(truth.surfaces) if s.feature_id.startswith("new0")]))
     label_map = np.full(scan.range.shape, -1, np.int8)
-    label_map.reshape(-1)[new_pix] = 4
+    label_map.reshape(-1)[new_pix] = CHANGE_MAP_LABELS.index(NEW)
     objects = {oid: c.label for oid, c in change_truth.objects.items()}
     from recognition.change import ChangeResult
 
@@ -206,7 +230,7 @@ def test_an_object_with_an_altered_feature_is_altered_as_a_whole_not_moved():
         "other.s1": FeatureChange("moved", 0.3, (5,), 0, 300, 0),
         "other.s2": FeatureChange("unchanged", None, (6,), 400, 100, 0),
     }
-    _propagate_rigid_moves(model, results)
+    _propagate_rigid_moves(model, results, ChangeParams().revealed_share)
     assert [results[f].label for f in ("run.s0", "run.e0", "run.s1")] == ["altered"] * 3
     assert [results[f].label for f in ("other.s0", "other.s1", "other.s2")] == ["moved"] * 3
     assert object_label([results[f] for f in ("run.s0", "run.e0", "run.s1")]) == "altered"
@@ -225,8 +249,9 @@ def test_a_new_region_takes_the_unexplained_pixels_left_out_of_every_patch():
     unexplained = np.zeros(shape, bool)
     unexplained[1:5, 5:8] = True  # the grazing face, touching the patch
     unexplained[8:, 10:] = True  # unexplained noise elsewhere, not connected
-    plain = _new_regions([patch], shape, 5)
-    grown = _new_regions([patch], shape, 5, grow_into=unexplained)
+    gap = ChangeParams().new_gap_px
+    plain = _new_regions([patch], shape, 5, gap)
+    grown = _new_regions([patch], shape, 5, gap, grow_into=unexplained)
     assert set(plain) == set(grown) == {7}
     assert np.array_equal(plain[7], np.sort(face))
     grazing = np.zeros(shape, bool)
@@ -252,7 +277,7 @@ def test_a_feature_gone_from_an_object_that_moved_as_a_whole_moved_with_it(sibli
                "run.s3": FeatureChange("unchanged" if sibling == "revealed" else sibling,
                                        0.25 if sibling == "moved" else None, (3,), 300,
                                        100 if sibling == "revealed" else 0, 0)}
-    _propagate_rigid_moves(model, results)
+    _propagate_rigid_moves(model, results, ChangeParams().revealed_share)
     if sibling == "revealed":
         assert [results[f"run.s{k}"].label for k in range(4)] == ["moved"] * 4
     elif sibling == "moved":
@@ -299,10 +324,10 @@ def test_a_coaxial_patch_in_front_of_a_feature_is_the_feature_grown():
                   "radius_sigma": 2e-4, "axis_sigma": 3e-4}}
     sizes = {11: 1800, 12: 900, 32: 170}
     in_front = np.array([11] * 1700 + [12] * 800 + [-1] * 50)
-    assert _patches_in_place(f, in_front, sizes, prims, 5e-3) == [11]
     params = ChangeParams()
-    assert _altered_by_patches(f, [32] + _patches_in_place(f, in_front, sizes, prims, 5e-3), prims, sizes,
-                               params) == [11]
+    assert _patches_in_place(f, in_front, sizes, prims, 5e-3, params.overlap_share) == [11]
+    assert _altered_by_patches(f, [32] + _patches_in_place(f, in_front, sizes, prims, 5e-3, params.overlap_share),
+                               prims, sizes, params) == [11]
     assert _altered_by_patches(f, [32], prims, sizes, params) == []  # the OTH rim patch alone says nothing
 
 

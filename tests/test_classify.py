@@ -223,8 +223,28 @@ def test_plane_gate_skips_curved_fits_on_planes_only():
     c = sample_patch("cylinder", np.random.default_rng(4), "factory_scanner")
     r = classify_patch(c.points, c.sigma)
     assert r.label == "CYL" and not r.details.get("curved_fits_skipped")
-    full = classify_patch(p.points, p.sigma, planar_hint=True, params=SelectParams(plane_gate=0.0))
+    full = classify_patch(p.points, p.sigma, planar_hint=True, params=SelectParams(plane_gate=None))
     assert full.label == "PLAN" and "CYL" in full.details["fits"]
+
+
+def test_the_criterion_trims_residuals_at_the_classifiers_level():
+    """``SelectParams.trim_sigma`` is the level of every trimmed chi² the classifier compares: each candidate
+    fit's ``chi2_trim`` counts a residual at most ``trim_sigma²`` (the fitting library's default level is the
+    same 3.5 sigma)."""
+    from recognition.fitting import TRIM_SIGMA
+
+    p = sample_patch("cylinder", np.random.default_rng(7), "kinect_like")
+    assert SelectParams().trim_sigma == TRIM_SIGMA
+    plane = {}
+    for level in (1.0, 3.5):
+        fits = classify_patch(p.points, p.sigma, params=SelectParams(trim_sigma=level)).details["fits"]
+        for f in fits.values():
+            if f.ok and np.isfinite(f.chi2_trim):
+                assert f.chi2_trim <= min(f.chi2, f.n_points * level**2) * (1 + 1e-12)
+        plane[level] = fits["PLAN"]
+    assert plane[1.0].chi2 == plane[3.5].chi2 and plane[1.0].chi2_trim < plane[3.5].chi2_trim  # the same fit
+    with pytest.raises(ValueError, match="trim_sigma"):
+        SelectParams(trim_sigma=0.0)
 
 
 @pytest.mark.parametrize("kind", ["cylinder", "cone"])
@@ -232,7 +252,7 @@ def test_cone_score_test_agrees_with_full_cone_fit(kind):
     for i in range(4):
         p = sample_patch(kind, np.random.default_rng([i, 21]), "factory_scanner")
         fast = classify_patch(p.points, p.sigma)
-        slow = classify_patch(p.points, p.sigma, params=SelectParams(cone_score_skip=0.0))
+        slow = classify_patch(p.points, p.sigma, params=SelectParams(cone_score_skip=None))
         assert fast.label == slow.label == TRUE_CLASS[kind]
         if fast.details["cone_skipped"]:
             assert fast.probabilities["CONE"] <= slow.probabilities["CONE"] + 0.2
@@ -351,7 +371,7 @@ def test_correlated_errors_are_not_evidence_for_a_more_flexible_model():
         radius, sigma = r.invariants["radius_m"]
         assert radius == pytest.approx(0.04, rel=0.05)
         assert abs(radius - 0.04) <= 2.0 * sigma  # the reported sigma counts correlated points as fewer
-        labels.append(classify_patch(pts, sig, params=SelectParams(min_inliers=1.0)).label)  # the criterion alone
+        labels.append(classify_patch(pts, sig, params=SelectParams(min_inliers=None)).label)  # the criterion alone
     assert sum(lab != "CYL" for lab in labels) >= 3, labels
 
 
@@ -379,7 +399,7 @@ def test_merged_neighbour_is_rescued_by_its_majority(seed):
     u = pts / np.linalg.norm(pts, axis=1, keepdims=True)
     k = np.random.default_rng(100 + seed).choice(len(pts), int(0.15 * len(pts)), replace=False)
     pts[k] += (8.0 * p.sigma[k])[:, None] * u[k]
-    assert classify_patch(pts, p.sigma, params=SelectParams(min_inliers=1.0)).label == "OTH"
+    assert classify_patch(pts, p.sigma, params=SelectParams(min_inliers=None)).label == "OTH"
     r = classify_patch(pts, p.sigma)
     _check_result(r)
     assert r.label == "CYL"

@@ -240,7 +240,7 @@ def test_the_least_width_of_a_rectangle_is_its_short_side(a, ratio, theta):
     u, v = np.meshgrid(np.linspace(-a / 2, a / 2, 41), np.linspace(-b / 2, b / 2, 41))
     c, s = np.cos(theta), np.sin(theta)
     uv = np.column_stack([u.ravel(), v.ravel()]) @ np.array([[c, s], [-s, c]])
-    w = _min_width(uv, trim=0.0)
+    w = _min_width(uv, MatchParams(width_trim=0.0))
     assert b * (1 - 1e-9) <= w <= b + np.sin(np.radians(2.5)) * np.hypot(a, b)
 
 

@@ -6,11 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recognition.change import LABELS, ChangeResult
+from recognition.change import ChangeResult
 from recognition.describe import SceneDescription
 from recognition.peers import MISSING, PEERS, STAGES, Peer
 from scenes.features import Cylinder, Plane, Sphere
 from scenes.model import SceneModel
+from scenes.vocabulary import CHANGE_MAP_LABELS
 
 EXPECTED = ("fpfh_ransac", "fgr", "efficient_ransac", "pyransac3d", "diff_change", "c2m_change")
 
@@ -182,7 +183,7 @@ def test_change_peers_truth_scan_is_unchanged(scene, name):
     seen = {f: c.label for f, c in res.features.items() if c.label != "unobserved"}
     assert seen and set(seen.values()) == {"unchanged"}, seen
     assert res.new_patches == ()
-    assert set(res.objects.values()) <= set(LABELS)
+    assert set(res.objects.values()) <= set(CHANGE_MAP_LABELS)
 
 
 @pytest.mark.parametrize("name", ["diff_change", "c2m_change"])

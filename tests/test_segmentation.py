@@ -509,7 +509,7 @@ def test_plane_pair_is_recognised_and_other_quadrics_are_not(angle_deg):
     a = np.deg2rad(angle_deg)
     n1, n2 = np.array([0, 0, 1.0]), np.array([np.sin(a), 0, np.cos(a)])
     pair = moved(0.5 * (np.outer(n1, n2) + np.outer(n2, n1)), np.zeros(3), 0.0)
-    assert _is_plane_pair(pair, x, 0.05)
+    assert _is_plane_pair(pair, x, SegmentationParams().plane_pair_tol)
     others = {
         "cylinder": moved(np.diag([1.0, 1.0, 0.0]), np.zeros(3), -0.09),
         "sphere": moved(np.eye(3), np.zeros(3), -0.25),
@@ -519,7 +519,7 @@ def test_plane_pair_is_recognised_and_other_quadrics_are_not(angle_deg):
         "plane": moved(np.zeros((3, 3)), np.array([0, 0, 1.0]), -0.1),
     }
     for name, p in others.items():
-        assert not _is_plane_pair(p, x, 0.05), name
+        assert not _is_plane_pair(p, x, SegmentationParams().plane_pair_tol), name
 
 
 @pytest.mark.parametrize("curved_planar_merge", [True, False])
@@ -606,7 +606,7 @@ def test_a_pipe_and_its_reducer_are_cut_apart_along_the_axis(shape):
                 "pipe": lambda t: np.full_like(t, 0.1), "cone": lambda t: 0.14 - t * tan}
     length = {"pipe+reducer": 1.6, "pipe": 1.2, "cone": 0.8}[shape]
     x, normals = _pipe_run_points(profiles[shape], length, 0.005)
-    side = _axial_pieces(x, np.full(len(x), 0.005), normals, 200)
+    side = _axial_pieces(x, np.full(len(x), 0.005), normals, 200, SegmentationParams())
     if shape != "pipe+reducer":
         assert side is None
         return
@@ -721,7 +721,7 @@ def test_k_planes_parts_a_far_box_corner_with_a_narrow_face(seed):
     u = x / np.linalg.norm(x, axis=1, keepdims=True)
     x = x + u * rng.normal(0.0, 0.008, len(x))[:, None]
     truth = np.repeat(np.arange(3), sizes)
-    part = _k_planes(x, u, np.full(len(x), 0.008), 3)
+    part = _k_planes(x, u, np.full(len(x), 0.008), 3, SegmentationParams())
     assert part is not None
     face_of_part = [int(np.argmax(np.bincount(truth[part == j], minlength=3))) for j in range(3)]
     assert sorted(face_of_part) == [0, 1, 2]
@@ -824,6 +824,34 @@ def test_impossible_reassignment_parameters_are_refused(field, value):
         SegmentationParams(**{field: value})
 
 
+@pytest.mark.parametrize("field,value", [
+    ("crease_baseline", 0), ("crease_baseline", "window"), ("class_min_pixels", 0), ("max_tiled_leftover", 0),
+    ("axis_split_pixels", 0), ("seed_erosion", None), ("decimation", None), ("decimation", 0),
+    ("split_seeds", None), ("split_seeds", "yes"), ("max_variance_ratio", 0.0), ("noise_block", 0),
+    ("absorb_rounds", 0), ("plane_pair_tol", -0.1), ("kplanes_iterations", 0), ("kplanes_inlier_k", 0.0),
+    ("kplanes_trials", 0), ("face_broad_ratio", 0.0), ("face_keep", 1.5), ("face_min_angle_deg", 120.0),
+    ("axis_split_passes", 0), ("axial_fit_points", 5), ("axial_flat_fraction", 0.0), ("axial_min_bins", 0),
+    ("axial_slice_points", 0), ("elbow_cut_keep", 0.0), ("elbow_cut_rounds", 0), ("elbow_cut_k", -3.0),
+    ("reassign_refit_pixels", 0), ("thin_peel_fraction", 0.0), ("stair_fraction", 2.0)])
+def test_impossible_step_parameters_are_refused(field, value):
+    """Off is None (never 0), a value derived from the image is "auto" (never None): anything else is refused
+    with a one-line error naming the field."""
+    with pytest.raises(ValueError, match=field):
+        SegmentationParams(**{field: value})
+
+
+def test_off_and_auto_spellings():
+    p = SegmentationParams()
+    assert p.crease_baseline is None and p.baseline == 0  # off
+    assert SegmentationParams(crease_baseline="auto").baseline == p.window
+    assert SegmentationParams(crease_baseline=3).baseline == 3
+    assert p.seed_erosion == "auto" and p.erosion == p.window // 2
+    assert p.decimation == "auto" and p.step((480, 640)) == 2 and p.step((245, 276)) == 1
+    assert SegmentationParams(decimation=3).step((480, 640)) == 3
+    assert p.class_min_pixels is None and p.scaled(2).class_min_pixels is None
+    assert SegmentationParams(class_min_pixels=40).scaled(2).class_min_pixels == 10
+
+
 @pytest.mark.parametrize("n_cols, fitted", [(2, False), (3, True)])
 def test_masked_fits_need_three_rows_and_three_columns(n_cols, fitted):
     """A window whose returns span fewer than 3 columns cannot fix the second derivatives: NaN, not a fit
@@ -899,7 +927,7 @@ def test_a_pipe_reducer_pipe_run_is_cut_into_its_three_parts():
         for _ in range(3):  # the passes of _split_along_axis
             for piece in np.unique(lab):
                 idx = np.flatnonzero(lab == piece)
-                side = _axial_pieces(x[idx], np.full(idx.size, 0.005), normals[idx], 200)
+                side = _axial_pieces(x[idx], np.full(idx.size, 0.005), normals[idx], 200, SegmentationParams())
                 if side is not None:
                     lab[idx[side == 1]] = lab.max() + 1
         part = np.digitize(x[:, 0], [j1, j2])
@@ -920,12 +948,12 @@ def test_a_far_thin_pipe_and_its_reducer_are_cut_with_longer_slices():
     for seed in range(8):
         x, normals = _pipe_run_points(lambda t: np.where(t < join, 0.07, 0.07 - (t - join) * tan), 1.5, 0.008,
                                       seed=seed, n=700)
-        side = _axial_pieces(x, np.full(len(x), 0.008), normals, 50)
+        side = _axial_pieces(x, np.full(len(x), 0.008), normals, 50, SegmentationParams())
         if side is not None:
             t = x[:, 0]
             errors.append(abs(t[side != side[np.argmin(t)]].min() - join))
         x, normals = _pipe_run_points(lambda t: np.full_like(t, 0.07), 1.0, 0.008, seed=seed, n=700)
-        assert _axial_pieces(x, np.full(len(x), 0.008), normals, 50) is None
+        assert _axial_pieces(x, np.full(len(x), 0.008), normals, 50, SegmentationParams()) is None
     assert len(errors) >= 5 and np.median(errors) < 0.1
 
 
@@ -961,7 +989,7 @@ def test_two_pipes_merged_with_their_elbow_are_cut_apart(seed):
     x, normals, part = _elbow_run_points(0.008, seed)
     normals = normals + np.random.default_rng(seed + 100).normal(0.0, 0.1, normals.shape)
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    side = _axial_pieces(x, np.full(len(x), 0.008), normals, 200)
+    side = _axial_pieces(x, np.full(len(x), 0.008), normals, 200, SegmentationParams())
     assert side is not None
     assert np.mean(side[part == 0] == 0) >= 0.99
     assert np.all(side[part == 2] == 1)
@@ -980,7 +1008,7 @@ def test_a_sphere_is_not_cut_into_pipes():
     normals = np.full(X.shape, np.nan)
     normals[on] = (X[on] - [0.2, 0.1, 1.2]) / 0.6
     sigma = np.where(on, 0.002, np.nan)
-    assert _axial_pieces(X[on], sigma[on], normals[on], 200, several_axes=True) is not None
+    assert _axial_pieces(X[on], sigma[on], normals[on], 200, SegmentationParams(), several_axes=True) is not None
     params = SegmentationParams()
     st = _State(X=X, U=X / np.maximum(np.linalg.norm(X, axis=1, keepdims=True), 1e-12), S=sigma,
                 hk=np.full(len(X), int(SurfaceType.ELLIPTIC), np.int64))

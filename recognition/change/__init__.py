@@ -2,7 +2,6 @@
 unchanged, moved, altered or missing, and what is new, given a registered scan (:mod:`.detection`)."""
 
 from .detection import (
-    LABELS,
     PIXEL_BEHIND,
     PIXEL_EXPLAINED,
     PIXEL_FRONT,
@@ -18,7 +17,7 @@ from .detection import (
 )
 
 __all__ = [
-    "LABELS", "PIXEL_BEHIND", "PIXEL_EXPLAINED", "PIXEL_FRONT", "PIXEL_NONE", "PIXEL_OTHER_SURFACE",
+    "PIXEL_BEHIND", "PIXEL_EXPLAINED", "PIXEL_FRONT", "PIXEL_NONE", "PIXEL_OTHER_SURFACE",
     "ChangeParams", "ChangeResult",
     "FeatureChange", "classify_pixels", "detect_changes", "object_label", "pixel_allowance",
 ]

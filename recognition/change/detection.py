@@ -33,12 +33,13 @@ from scipy import ndimage
 
 from recognition.describe import SceneDescription
 from recognition.localisation import ModelPredictor, Prediction
+from recognition.tuning import tuned
 from scenes.features import Cone, Cylinder, Feature, Plane, Sphere, Torus
 from scenes.geometry import transform_points
 from scenes.model import SceneModel
+from scenes.vocabulary import ALTERED, CHANGE_MAP_LABELS, MISSING, MOVED, NEW, UNCHANGED, UNOBSERVED
 from sensors.range_image import Scan
 
-LABELS = ("unchanged", "moved", "missing", "altered", "new", "unobserved")
 PIXEL_NONE, PIXEL_EXPLAINED, PIXEL_OTHER_SURFACE, PIXEL_FRONT, PIXEL_BEHIND = 0, 1, 2, 3, 4
 
 
@@ -61,20 +62,38 @@ class ChangeParams:
     new_unexplained_fraction : share of a patch's points that must be unexplained for it to be new.
     compatible_probability : a patch may show a feature of another class than its label when the classifier
         gives that feature's class at least this probability (a far, nearly flat face fitted as a sphere).
+    overlap_share : a patch supports a present feature when at least this share of its pixels are among the
+        feature's explained ones (and so for the patches in front of a feature, :func:`_overlapping_patches`).
+    new_gap_px : new patches within this many pixels of each other in the image form one new region (a new
+        object split by the segmenter is one detection, not several).
+    revealed_share : in an object that moved (or was altered) as a whole, a feature left ``unchanged`` whose
+        predicted place is revealed (background seen where it should be) on at least this share of its judged
+        pixels moved (or was altered) with it.
+
+    Every field's unit and where its value was chosen: :func:`recognition.tuning.tuned` (``docs/tuning.md``).
     """
 
-    k_sigma: float = 4.0
-    pose_sigma_floor_m: float = 5e-4
-    pose_sigma_floor_rad: float = 2e-4
-    min_pixels: int = 40
-    present_fraction: float = 0.5
-    radius_tolerance: float = 0.1
-    loose_distance_fraction: float = 0.03
-    loose_angle_deg: float = 25.0
-    altered_min_pixels: int = 300
-    new_min_pixels: int = 60
-    new_unexplained_fraction: float = 0.7
-    compatible_probability: float = 0.2
+    k_sigma: float = tuned(4.0, unit="sigma", chosen="not tuned here: the first prototype's choice before this "
+                           "code (macro-F1 0.956 at 4 sigma, 0.966 at 2, truth segmentation; 3a0124b)")
+    pose_sigma_floor_m: float = tuned(5e-4, unit="m", chosen="not tuned: set in 3a0124b")
+    pose_sigma_floor_rad: float = tuned(2e-4, unit="rad", chosen="not tuned: set in 3a0124b")
+    min_pixels: int = tuned(40, unit="px", chosen="not tuned: set in 3a0124b")
+    present_fraction: float = tuned(0.5, unit="fraction", chosen="not tuned: set in 3a0124b")
+    radius_tolerance: float = tuned(0.1, unit="fraction", chosen="not tuned: set in 3a0124b")
+    loose_distance_fraction: float = tuned(0.03, unit="fraction of the model's diagonal",
+                                           chosen="not tuned: set in 3a0124b")
+    loose_angle_deg: float = tuned(25.0, unit="deg", chosen="not tuned: set in 3a0124b")
+    altered_min_pixels: int = tuned(
+        300, unit="px", chosen="the first phase's default (now classic): no-change false alarms 2 -> 0 of 47 judged "
+        "features on the mock-up, macro-F1 0.534 -> 0.532 (4157ce6)")
+    new_min_pixels: int = tuned(60, unit="px", chosen="not tuned: set in 3a0124b")
+    new_unexplained_fraction: float = tuned(0.7, unit="fraction", chosen="not tuned: set in 3a0124b")
+    compatible_probability: float = tuned(
+        0.2, unit="probability", chosen="the first phase's default (now classic), with the search at a moved "
+        "object's new place: factory change macro-F1 0.893 -> 0.926 (6cccc4b)")
+    overlap_share: float = tuned(0.3, unit="fraction", chosen="not tuned: set in 3a0124b")
+    new_gap_px: int = tuned(2, unit="px", chosen="not tuned: set with the new regions in 0ac937a")
+    revealed_share: float = tuned(0.1, unit="fraction", chosen="not tuned: set in 3a0124b")
 
     def __post_init__(self):
         for name in ("k_sigma", "present_fraction", "radius_tolerance", "loose_distance_fraction",
@@ -83,6 +102,11 @@ class ChangeParams:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.min_pixels < 1 or self.new_min_pixels < 1:
             raise ValueError("min_pixels and new_min_pixels must be >= 1")
+        for name in ("overlap_share", "revealed_share"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
+        if self.new_gap_px < 0:
+            raise ValueError(f"new_gap_px must be >= 0, got {self.new_gap_px}")
 
 
 @dataclass(frozen=True)
@@ -107,7 +131,7 @@ class ChangeResult:
     objects: dict[str, str]
     new_patches: tuple[int, ...]
     pixel_class: np.ndarray  # (H, W) int8, PIXEL_* per pixel
-    label_map: np.ndarray  # (H, W) int8 index into LABELS (-1 none): the change map
+    label_map: np.ndarray  # (H, W) int8 index into scenes.vocabulary.CHANGE_MAP_LABELS (-1 none): the change map
     new_patch_pixels: dict[int, np.ndarray] = field(default_factory=dict)  # flat pixels of each new patch
     timing_s: dict[str, float] = field(default_factory=dict)
 
@@ -292,30 +316,31 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
         occluded = int(np.sum(c == PIXEL_FRONT))
         judged = found + revealed
         f = by_id[fid]
-        overlapping = _overlapping_patches(label_flat[pix[c == PIXEL_EXPLAINED]], sizes)
+        overlapping = _overlapping_patches(label_flat[pix[c == PIXEL_EXPLAINED]], sizes, params.overlap_share)
         if judged >= params.min_pixels and found >= params.present_fraction * judged:
             allow = float(np.median(allowance.reshape(-1)[pix]))
             tight = [_tight(f, patch_prims[pid], allow) for pid in overlapping if patch_prims.get(pid) is not None]
             tight = [t for t in tight if t is not None]
             if tight and not any(tight):
                 # seen where predicted, but its fitted pose disagrees with the model: a small move
-                results[fid] = FeatureChange("unobserved", None, (), found, revealed, occluded)
+                results[fid] = FeatureChange(UNOBSERVED, None, (), found, revealed, occluded)
                 pending.append(fid)
                 continue
             # a patch in front of the feature's predicted surface, at its place: the feature itself, grown
             # (a pipe of a larger radius comes nearer the sensor than the allowance)
-            in_front = _patches_in_place(f, label_flat[pix[c == PIXEL_FRONT]], sizes, patch_prims, allow)
+            in_front = _patches_in_place(f, label_flat[pix[c == PIXEL_FRONT]], sizes, patch_prims, allow,
+                                         params.overlap_share)
             judged_patches = [q for q in overlapping + in_front if sizes[q] >= params.altered_min_pixels]
             altered = _altered_by_patches(f, judged_patches, patch_prims, sizes, params)
             claimed.update(overlapping)
             claimed.update(altered)
             if altered:
-                results[fid] = FeatureChange("altered", None, tuple(altered), found, revealed, occluded,
+                results[fid] = FeatureChange(ALTERED, None, tuple(altered), found, revealed, occluded,
                                              "fitted shape differs from the model")
             else:
-                results[fid] = FeatureChange("unchanged", None, tuple(overlapping), found, revealed, occluded)
+                results[fid] = FeatureChange(UNCHANGED, None, tuple(overlapping), found, revealed, occluded)
         else:
-            results[fid] = FeatureChange("unobserved", None, (), found, revealed, occluded)
+            results[fid] = FeatureChange(UNOBSERVED, None, (), found, revealed, occluded)
             pending.append(fid)
 
     # loose matching for the features not found at their predicted place, in two passes: first only patches
@@ -335,33 +360,34 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
                 claimed.update(results[fid].patches)
                 decided.add(fid)
             elif not confirmed_only and prev.found + prev.revealed >= params.min_pixels:
-                results[fid] = FeatureChange("missing", None, (), prev.found, prev.revealed, prev.occluded,
+                results[fid] = FeatureChange(MISSING, None, (), prev.found, prev.revealed, prev.occluded,
                                              "predicted visible, background revealed")
 
     for f in model.features:  # predicted invisible
-        results.setdefault(f.id, FeatureChange("unobserved", reason="not predicted visible"))
-    _propagate_rigid_moves(model, results)
+        results.setdefault(f.id, FeatureChange(UNOBSERVED, reason="not predicted visible"))
+    _propagate_rigid_moves(model, results, params.revealed_share)
     if _claim_moved_faces(model, results, description, patch_prims, claimed, T, allowance, loose_d, params,
                           unexplained):
-        _propagate_rigid_moves(model, results)
+        _propagate_rigid_moves(model, results, params.revealed_share)
 
     candidates = [p for p in description.patches if p.id not in claimed and p.id in unexplained]
     unexplained_free = np.isin(pix_cls, (PIXEL_FRONT, PIXEL_BEHIND)) & (description.labels < 0)
-    new_pixels = _new_regions(candidates, scan.range.shape, params.new_min_pixels, grow_into=unexplained_free)
+    new_pixels = _new_regions(candidates, scan.range.shape, params.new_min_pixels, params.new_gap_px,
+                              grow_into=unexplained_free)
     new = tuple(new_pixels)
     objects = {o.id: object_label([results[f.id] for f in o.features]) for o in model.objects}
     label_map = np.full(scan.range.shape, -1, dtype=np.int8)
     lm = label_map.reshape(-1)
     for fid, pix in feature_pixels.items():
         lab = results[fid].label
-        if lab != "unobserved":
-            lm[pix] = LABELS.index(lab)
+        if lab != UNOBSERVED:
+            lm[pix] = CHANGE_MAP_LABELS.index(lab)
     for pix in new_pixels.values():
-        lm[pix] = LABELS.index("new")
+        lm[pix] = CHANGE_MAP_LABELS.index(NEW)
     for res in results.values():
-        if res.label == "moved":
+        if res.label == MOVED:
             for pid in res.patches:
-                lm[description.patches[_patch_index(description, pid)].pixels] = LABELS.index("moved")
+                lm[description.patches[_patch_index(description, pid)].pixels] = CHANGE_MAP_LABELS.index(MOVED)
     timing["change"] = time.perf_counter() - t0
     return ChangeResult(results, objects, new, pix_cls, label_map, new_pixels, timing)
 
@@ -401,7 +427,7 @@ def _fragments_of(pid: int, description: SceneDescription, prims: dict, claimed:
     return tuple(out)
 
 
-def _new_regions(patches, shape: tuple[int, int], min_pixels: int, gap_px: int = 2,
+def _new_regions(patches, shape: tuple[int, int], min_pixels: int, gap_px: int,
                  grow_into: np.ndarray | None = None) -> dict[int, np.ndarray]:
     """Unexplained patches grouped into new regions: patches within ``gap_px`` of each other in the image
     form one region (a new object split by the segmenter is one detection, not several). Keyed by the id
@@ -465,8 +491,7 @@ def _model_diagonal(model: SceneModel) -> float:
     return float(np.linalg.norm(hi - lo))
 
 
-def _overlapping_patches(labels_on_feature: np.ndarray, sizes: dict[int, int], min_share: float = 0.3
-                         ) -> list[int]:
+def _overlapping_patches(labels_on_feature: np.ndarray, sizes: dict[int, int], min_share: float) -> list[int]:
     """Patches with at least ``min_share`` of their pixels (``sizes``: pixels per patch id) among the given
     pixels (a feature's explained ones)."""
     ids, counts = np.unique(labels_on_feature[labels_on_feature >= 0], return_counts=True)
@@ -510,22 +535,22 @@ def _loose_verdict(f: Feature, prev: FeatureChange, description: SceneDescriptio
             same = None  # a small patch elsewhere: its radius cannot tell another feature from this one moved
         if place and same is False:
             if dist < best:
-                best, verdict = dist, FeatureChange("altered", None, (p.id,), prev.found, prev.revealed,
+                best, verdict = dist, FeatureChange(ALTERED, None, (p.id,), prev.found, prev.revealed,
                                                     prev.occluded, "same place, other shape parameters")
         elif (same if confirmed_only else same is not False) and dist <= reach and \
                 _within_angle(f, prim, params.loose_angle_deg):
             if dist < best:
-                best, verdict = dist, FeatureChange("moved", _displacement(f, prim, dist), (p.id,), prev.found,
+                best, verdict = dist, FeatureChange(MOVED, _displacement(f, prim, dist), (p.id,), prev.found,
                                                     prev.revealed, prev.occluded, "found in the loose neighbourhood")
     return verdict
 
 
 def _patches_in_place(f: Feature, labels_in_front: np.ndarray, sizes: dict[int, int], prims: dict,
-                      allowance_m: float) -> list[int]:
+                      allowance_m: float, min_share: float) -> list[int]:
     """Patches over a feature's pixels where the data lie in front of the predicted surface
     (``labels_in_front``: their patch labels) whose fitted primitive sits at the feature's place: the
     feature itself grown (a pipe of a larger radius), not something occluding it."""
-    return [q for q in _overlapping_patches(labels_in_front, sizes)
+    return [q for q in _overlapping_patches(labels_in_front, sizes, min_share)
             if prims.get(q) is not None and _same_place(f, prims[q], allowance_m)]
 
 
@@ -612,7 +637,7 @@ def _within_angle(f: Feature, prim: dict, max_deg: float) -> bool:
     return True
 
 
-def _propagate_rigid_moves(model: SceneModel, results: dict[str, FeatureChange], revealed_share: float = 0.1) -> None:
+def _propagate_rigid_moves(model: SceneModel, results: dict[str, FeatureChange], revealed_share: float) -> None:
     """Objects move as a whole: in an object with a moved feature, a feature left 'unchanged' whose predicted
     place is partly revealed (background seen where it should be) moved with it, and so did a 'missing' one
     when none of its features stayed (the counting of :func:`object_label` calls that object moved).
@@ -622,28 +647,28 @@ def _propagate_rigid_moves(model: SceneModel, results: dict[str, FeatureChange],
     compared, sits a radius change away from where the model has it) or partly revealed are altered too.
     """
     for obj in model.objects:
-        if any(results[f.id].label == "altered" for f in obj.features):
+        if any(results[f.id].label == ALTERED for f in obj.features):
             for f in obj.features:
                 r = results[f.id]
-                if r.label == "moved" or (r.label == "unchanged" and
+                if r.label == MOVED or (r.label == UNCHANGED and
                                           r.revealed >= revealed_share * max(r.found + r.revealed, 1)):
-                    results[f.id] = FeatureChange("altered", None, r.patches, r.found, r.revealed, r.occluded,
+                    results[f.id] = FeatureChange(ALTERED, None, r.patches, r.found, r.revealed, r.occluded,
                                                   "its object's shape changed")
             continue
-        moved = [results[f.id] for f in obj.features if results[f.id].label == "moved"]
+        moved = [results[f.id] for f in obj.features if results[f.id].label == MOVED]
         if not moved or obj.kind == "pipe_run" and len(moved) < 2:
             continue  # one moved section of a pipe run is a section move, not an object move
         disp = float(np.median([m.displacement_m for m in moved if m.displacement_m is not None] or [np.nan]))
         for f in obj.features:
             r = results[f.id]
-            if r.label == "unchanged" and r.revealed >= revealed_share * max(r.found + r.revealed, 1):
-                results[f.id] = FeatureChange("moved", disp, r.patches, r.found, r.revealed, r.occluded,
+            if r.label == UNCHANGED and r.revealed >= revealed_share * max(r.found + r.revealed, 1):
+                results[f.id] = FeatureChange(MOVED, disp, r.patches, r.found, r.revealed, r.occluded,
                                               "moves with its object")
-        if all(results[f.id].label in ("moved", "missing", "unobserved") for f in obj.features):
+        if all(results[f.id].label in (MOVED, MISSING, UNOBSERVED) for f in obj.features):
             for f in obj.features:  # gone from its place in an object that moved as a whole: moved with it, unseen
                 r = results[f.id]
-                if r.label == "missing":
-                    results[f.id] = FeatureChange("moved", disp, r.patches, r.found, r.revealed, r.occluded,
+                if r.label == MISSING:
+                    results[f.id] = FeatureChange(MOVED, disp, r.patches, r.found, r.revealed, r.occluded,
                                                   "moves with its object")
 
 
@@ -657,17 +682,17 @@ def _claim_moved_faces(model: SceneModel, results: dict[str, FeatureChange], des
     """
     found = False
     for obj in model.objects:
-        if not any(results[f.id].label == "moved" for f in obj.features) or \
-                object_label([results[f.id] for f in obj.features]) != "moved":
+        if not any(results[f.id].label == MOVED for f in obj.features) or \
+                object_label([results[f.id] for f in obj.features]) != MOVED:
             continue
         for f in obj.features:
             r = results[f.id]
-            if r.patches or r.label not in ("moved", "unobserved", "missing"):
+            if r.patches or r.label not in (MOVED, UNOBSERVED, MISSING):
                 continue
             free = {q for q in unexplained if q not in claimed}
             verdict = _loose_verdict(f, r, description, patch_prims, claimed, T, allowance, loose_d, False, params,
                                      unexplained, only=free)
-            if verdict is None or verdict.label != "moved":
+            if verdict is None or verdict.label != MOVED:
                 continue
             fragments = _fragments_of(verdict.patches[0], description, patch_prims, claimed, T, allowance, f)
             results[f.id] = replace(verdict, patches=verdict.patches + fragments, reason="seen moved with its object")
@@ -681,15 +706,15 @@ def object_label(changes: list[FeatureChange]) -> str:
     observed feature is missing, ``moved`` when every observed feature moved (or moved and missing from view
     at the old place), ``altered`` when some are altered or only part of it moved, else ``unchanged``;
     ``unobserved`` when none was observed."""
-    labels = [c.label for c in changes if c.label != "unobserved"]
+    labels = [c.label for c in changes if c.label != UNOBSERVED]
     if not labels:
-        return "unobserved"
-    if all(lab == "missing" for lab in labels):
-        return "missing"
-    if "moved" in labels and all(lab in ("moved", "missing") for lab in labels):
-        return "moved"
-    if any(lab in ("altered", "moved") for lab in labels):
-        return "altered"
-    if "missing" in labels and "unchanged" in labels:
-        return "altered"
-    return "unchanged"
+        return UNOBSERVED
+    if all(lab == MISSING for lab in labels):
+        return MISSING
+    if MOVED in labels and all(lab in (MOVED, MISSING) for lab in labels):
+        return MOVED
+    if any(lab in (ALTERED, MOVED) for lab in labels):
+        return ALTERED
+    if MISSING in labels and UNCHANGED in labels:
+        return ALTERED
+    return UNCHANGED

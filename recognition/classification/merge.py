@@ -18,11 +18,11 @@ __all__ = ["merge_test"]
 
 def merge_test(fit_a: Primitive, points_a: np.ndarray, sigma_a: np.ndarray, fit_b: Primitive,
                points_b: np.ndarray, sigma_b: np.ndarray, params: SelectParams | None = None,
-               correlation_area: float = 1.0, max_points: int = 1500) -> tuple[Primitive, float] | None:
+               correlation_area: float = 1.0) -> tuple[Primitive, float] | None:
     """Does one primitive of the same type explain two patches (a surface the segmenter left in pieces)?
 
     The union is fitted from ``fit_a`` (the larger patch's fit, say) on a regular-stride subsample of at most
-    ``max_points`` points; it must pass the goodness-of-fit test, and its trimmed chi² may exceed that of the
+    ``params.merge_points`` points; it must pass the goodness-of-fit test, and its trimmed chi² may exceed that of the
     two patches' own fits on the same points by less than the criterion's price of the parameters the merge
     saves (as in :func:`classify_patch`, correlated errors counted as ``correlation_area`` pixels per
     independent one). Returns ``(union fit, criterion gain)`` (gain < 0) or None.
@@ -33,7 +33,7 @@ def merge_test(fit_a: Primitive, points_a: np.ndarray, sigma_a: np.ndarray, fit_
     pts = np.concatenate([points_a, points_b])
     sig = np.concatenate([sigma_a, sigma_b])
     in_a = np.arange(len(pts)) < len(points_a)
-    idx = _subsample(len(pts), max_points)
+    idx = _subsample(len(pts), params.merge_points)
     ps, ss, ia = pts[idx], sig[idx], in_a[idx]
     union = _refit(fit_a, ps, ss, None, params)
     if not union.ok:
@@ -44,9 +44,10 @@ def merge_test(fit_a: Primitive, points_a: np.ndarray, sigma_a: np.ndarray, fit_
         return None
     n, k = len(ps), union.n_params
     rho = max(1.0, float(correlation_area) * n / len(pts))
-    chi2 = fitting.trimmed_chi2(r)
+    chi2 = fitting.trimmed_chi2(r, params.trim_sigma)
     dof = max(n - k, 1)
     if not chi2 / dof <= _gof_threshold(params, dof):
         return None
-    gain = (chi2 - fitting.trimmed_chi2(ra) - fitting.trimmed_chi2(rb)) / rho - k * _price(n, params.criterion, rho)
+    gain = (chi2 - fitting.trimmed_chi2(ra, params.trim_sigma) - fitting.trimmed_chi2(rb, params.trim_sigma)) / rho \
+        - k * _price(n, params.criterion, rho)
     return (union, float(gain)) if gain < 0 else None

@@ -1,10 +1,14 @@
 """Parameters of the two classifiers of section 3 of Fillatreau & Fisher: :class:`PaperParams` (the paper's
 plausibility rule) and :class:`SelectParams` (the core's model selection); every tuned value says on which
-suite and figure it was chosen (DESIGN 11.2)."""
+suite and figure it was chosen (its metadata, :func:`recognition.tuning.tuned`; all of them: ``docs/tuning.md``)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+import numpy as np
+
+from recognition.tuning import tuned
 
 
 @dataclass(frozen=True)
@@ -27,12 +31,12 @@ class PaperParams:
         Huber threshold (sigma units) of the dedicated fits.
     """
 
-    zero_rule: str = "literal"
-    sigma_mode: str = "bauer_fike"
-    margin: float = 0.2
-    verify_factor: float = 1.5
-    max_points: int = 2000
-    huber: float | None = 3.0
+    zero_rule: str = tuned("literal", unit="-", chosen="the paper's rule, read literally (the baseline)")
+    sigma_mode: str = tuned("bauer_fike", unit="-", chosen="the paper's eigenvalue bound (the baseline)")
+    margin: float = tuned(0.2, unit="probability", chosen="the paper's value")
+    verify_factor: float = tuned(1.5, unit="ratio", chosen="not tuned: set with the baseline in 1a61ec8")
+    max_points: int = tuned(2000, unit="points", chosen="not tuned: a speed bound, set in 1a61ec8")
+    huber: float | None = tuned(3.0, unit="sigma", chosen="not tuned: set in 1a61ec8")
 
 
 @dataclass(frozen=True)
@@ -72,11 +76,11 @@ class SelectParams:
         cone nested in it); models that are clearly losing stop early (``stop_above``).
     huber : float or None
         Huber threshold (sigma units) of the fits.
-    cone_score_skip : float
+    cone_score_skip : float or None
         The cone is fitted only when a score test at the cylinder's solution (the decrease of the cost that
         one Gauss-Newton step of the cone predicts) reaches this fraction of the criterion's price of one
         parameter (``ln N`` for BIC); otherwise its criterion is the cylinder's plus that price minus the
-        predicted decrease. 0: always fit it.
+        predicted decrease. None: no score test (always fit it).
     prob_floor : float
         Mixed with the uniform distribution: ``p = (1 - f) p + f / 5`` (bounds the Brier cost of a confident
         error). Fitted with ``temperature`` and ``gof_width`` on the ``calibration`` suite
@@ -92,20 +96,20 @@ class SelectParams:
         geometric fit (beam footprint, noise along the ray).
     refit_points : int
         Subsample size of that refit's iterations.
-    outlier_k : float
+    outlier_k : float or None
         Gross outliers (see :func:`_gross_outliers`) are removed before fitting when they are at most 20 %
-        of the patch; 0: keep all points.
-    min_inliers : float
+        of the patch; None: keep all points.
+    min_inliers : float or None
         A patch that would be OTH (no primitive fits all its points within noise, or a general quadric fits
         them better) gets the label of a primitive (plane, cylinder or sphere; not the cone, the most
         flexible) when, after three least-trimmed-squares refits on this fraction of its points, at least
-        this fraction lies within ``TRIM_SIGMA`` of it and those pass the goodness-of-fit test; probability:
-        that fraction. For patches the segmenter merged across two surfaces. 1: off. A pipe elbow also has
-        most of its points near a cylinder (91 % within 3.5 sigma on a low-noise synthetic one), so an elbow
-        that a torus explains (``torus``) is never rescued. Chosen on the ``calibration`` suite (seed 4242,
-        never ``default``; DESIGN 10.8), end to end with the torus: 0.6, 0.7, 0.8 and 0.9 gave the same labels
-        there, accuracy 0.895 -> 0.917 (factory scanner 0.924 -> 0.958, mock-up 0.983 -> 1.0, Kinect-like
-        unchanged) and Brier 0.190 -> 0.151; 0.8, the middle, is the default.
+        this fraction lies within ``trim_sigma`` of it and those pass the goodness-of-fit test; probability:
+        that fraction. For patches the segmenter merged across two surfaces. None: no trimmed rescue. A pipe
+        elbow also has most of its points near a cylinder (91 % within 3.5 sigma on a low-noise synthetic
+        one), so an elbow that a torus explains (``torus``) is never rescued. Chosen on the first phase's
+        ``calibration`` suite (seed 4242, never ``default``), end to end with the torus: 0.6, 0.7, 0.8 and 0.9
+        gave the same labels there, accuracy 0.895 -> 0.917 (factory scanner 0.924 -> 0.958, mock-up 0.983 ->
+        1.0, Kinect-like unchanged) and Brier 0.190 -> 0.151; 0.8, the middle, is the default.
     torus : bool
         Fit a ring torus (a pipe elbow, :func:`recognition.fitting.fit_torus`) when a curved primitive
         leads the criterion and the bend test passes (``torus_score_skip``). It competes as a model of OTH
@@ -129,40 +133,108 @@ class SelectParams:
         below which the evaluation does not score patches either. On the ``calibration`` suite 200 and 0 gave
         the same accuracy, Brier and correct detection; on ``default`` the 15-20 small patches of a
         factory-scanner frame took half its classification time with them.
-    plane_gate : float
+    plane_gate : float or None
         Cylinders, cones and spheres are not fitted when the plane passes the goodness-of-fit test and a
         quadratic height field over it lowers the trimmed chi² by less than this fraction of their price
         (``2 ln N`` for two more parameters, plus the planar hint's log odds): at this scale they are such
-        height fields, so they cannot win (large planar patches were 70 % of a frame's time). 0: always fit
-        them.
+        height fields, so they cannot win (large planar patches were 70 % of a frame's time). None: no gate
+        (always fit them).
     invariant_sigma_scale : float
         Multiplies the sigmas of the reported invariants (radius, half-angle, length; the fits' own
         covariances are left alone). The fits' sandwich covariances miss errors shared by neighbouring points
         (beam footprint, incidence-dependent range bias): on the ``calibration`` suite (seed 4242, never
         ``default``; DESIGN 10.8) the radius errors of the 77 patches labelled CYL or SPH on a true cylinder or
         sphere had a median of 0.95 predicted sigmas where a Gaussian has 0.674: scale 1.415, rounded to 1.4.
+    trim_sigma : float
+        The trimmed chi² of the criterion and the goodness of fit: residuals beyond this many sigmas count as
+        ``trim_sigma²`` (mixed pixels, outliers and bits of a neighbouring surface at a patch's border add at
+        most that much each); the trimmed rescue's inliers are the points within it.
+    single_sheet_fraction : float
+        The general quadric competes as OTH only when the sign of its gradient along the plane's normal is the
+        same for this fraction of the points (a noisy plane is fitted better by two parallel sheets, which are
+        not a surface: :func:`_single_sheet`).
+    merge_points : int
+        Points (regular-stride subsample) of the union fit of :func:`recognition.classification.merge_test`.
+    refit_trim : float
+        Hard trimming threshold (sigma units) of the range refit (``range_refit``): points beyond get weight 0.
+    refit_iter : int
+        Iterations of the range refit at most.
+    refit_final_points : int
+        Points of the range refit's last two iterations, statistics and covariance.
+
+    Every field's unit and where its value was chosen: :func:`recognition.tuning.tuned` (``docs/tuning.md``).
     """
 
-    criterion: str = "bic"
-    gof_factor: float = 1.5
-    gof_z: float = 3.0
-    gof_width: float = 0.1
-    quadric_as_other: bool = True
-    other_penalty: float = 0.0
-    planar_hint_odds: float = 100.0
-    temperature: float = 1.0
-    max_points: int = 1500
-    max_iter: int = 25
-    huber: float | None = 3.0
-    cone_score_skip: float = 0.7
-    prob_floor: float = 0.1
-    range_refit: bool = True
-    refit_points: int = 600
-    outlier_k: float = 8.0
-    min_inliers: float = 0.8
-    torus: bool = True
-    max_bend_ratio: float = 10.0
-    torus_score_skip: float = 0.7
-    min_torus_points: int = 200
-    plane_gate: float = 0.5
-    invariant_sigma_scale: float = 1.4
+    criterion: str = tuned("bic", unit="-", chosen="not tuned: BIC since 1a61ec8")
+    gof_factor: float = tuned(1.5, unit="reduced chi²", chosen="not tuned: set in 1a61ec8")
+    gof_z: float = tuned(3.0, unit="sigma", chosen="not tuned: set in 1a61ec8")
+    gof_width: float = tuned(
+        0.1, unit="relative", chosen="calibration (phase 1): grid search with temperature and prob_floor, Brier "
+        "0.240 -> 0.227 at accuracy 0.879 (83bb055)")
+    quadric_as_other: bool = tuned(True, unit="-", chosen="on since 1a61ec8: the general quadric is the model of OTH")
+    other_penalty: float = tuned(0.0, unit="criterion", chosen="not tuned: no prior against OTH (1a61ec8)")
+    planar_hint_odds: float = tuned(100.0, unit="odds", chosen="not tuned: set in 1a61ec8")
+    temperature: float = tuned(
+        1.0, unit="-", chosen="calibration (phase 1): T = 1 best of {1, 2, 4, ..., 32} by the Brier score (83bb055)")
+    max_points: int = tuned(1500, unit="points", chosen="not tuned: a speed bound, set in 1a61ec8")
+    max_iter: int = tuned(25, unit="count", chosen="not tuned: set in 1a61ec8 (a cylinder cut off at 10 lost to "
+                          "the cone nested in it at Kinect-like noise)")
+    huber: float | None = tuned(3.0, unit="sigma", chosen="not tuned: set in 1a61ec8")
+    cone_score_skip: float | None = tuned(
+        0.7, unit="fraction", chosen="not tuned: a speed gate, set in 83bb055 (accuracy unchanged there)")
+    prob_floor: float = tuned(
+        0.1, unit="probability", chosen="calibration (phase 1): f = 0.1 best of {0, 0.05, 0.1, 0.2, 0.3} by the "
+        "Brier score, with temperature and gof_width (83bb055)")
+    range_refit: bool = tuned(
+        True, unit="-", chosen="on since 83bb055: the factory scanner's cylinder radii, 2.1 % low (median) from the "
+        "geometric fit, within 0.02 % (the first phase's default, now classic)")
+    refit_points: int = tuned(600, unit="points", chosen="not tuned: a speed bound, set in 83bb055")
+    outlier_k: float | None = tuned(8.0, unit="robust sigma", chosen="not tuned: set in 83bb055")
+    min_inliers: float | None = tuned(
+        0.8, unit="fraction", chosen="calibration (phase 1), with the torus: accuracy 0.895 -> 0.917, Brier 0.190 "
+        "-> 0.151; 0.6-0.9 gave the same labels, 0.8 the middle (1777436)")
+    torus: bool = tuned(True, unit="-", chosen="calibration (phase 1): accuracy 0.890 -> 0.895 without the rescue "
+                        "(1777436)")
+    max_bend_ratio: float = tuned(10.0, unit="pipe radii", chosen="not tuned: elbows are bent at 1-5 pipe diameters "
+                                  "(1777436)")
+    torus_score_skip: float = tuned(0.7, unit="fraction", chosen="not tuned: a speed gate, set in 1777436")
+    min_torus_points: int = tuned(
+        200, unit="points", chosen="calibration (phase 1): 200 and 0 gave the same accuracy, Brier and correct "
+        "detection; chosen for speed (325e52e)")
+    plane_gate: float | None = tuned(
+        0.5, unit="fraction", chosen="not tuned: a speed gate, set in 83bb055 (large planes were 70 % of a "
+        "frame's time)")
+    invariant_sigma_scale: float = tuned(
+        1.4, unit="ratio", chosen="calibration (phase 1): median radius error 0.95 predicted sigmas against "
+        "0.674 for a Gaussian (77 patches): 1.415, rounded (0b428fc)")
+    trim_sigma: float = tuned(
+        3.5, unit="sigma", chosen="not tuned: set with the robust goodness of fit in 83bb055 (a low-noise "
+        "synthetic elbow has 91 % of its points within 3.5 sigma of a cylinder)")
+    single_sheet_fraction: float = tuned(0.9, unit="fraction", chosen="not tuned: set in 1a61ec8")
+    merge_points: int = tuned(1500, unit="points", chosen="not tuned: a speed bound, set with the merge test in "
+                              "97ec30f")
+    refit_trim: float = tuned(4.0, unit="sigma", chosen="not tuned: set with the range refit in 83bb055")
+    refit_iter: int = tuned(5, unit="count", chosen="not tuned: set with the range refit in 83bb055")
+    refit_final_points: int = tuned(6000, unit="points", chosen="not tuned: a speed bound, set with the range "
+                                    "refit in 83bb055")
+
+    def __post_init__(self) -> None:
+        if self.criterion not in ("bic", "aic"):
+            raise ValueError(f"criterion must be 'bic' or 'aic', got {self.criterion!r}")
+        for name in ("cone_score_skip", "outlier_k", "plane_gate"):
+            v = getattr(self, name)
+            if v is not None and not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive finite number or None (off), got {v!r}")
+        if self.min_inliers is not None and not 0 < self.min_inliers < 1:
+            raise ValueError(f"min_inliers must be in (0, 1) or None (off), got {self.min_inliers!r}")
+        for name in ("trim_sigma", "refit_trim"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive finite number, got {v!r}")
+        if not 0.5 <= self.single_sheet_fraction <= 1:
+            raise ValueError(f"single_sheet_fraction must be in [0.5, 1], got {self.single_sheet_fraction!r}")
+        for name in ("merge_points", "refit_final_points"):
+            if getattr(self, name) < 10:
+                raise ValueError(f"{name} must be >= 10, got {getattr(self, name)!r}")
+        if self.refit_iter < 1:
+            raise ValueError(f"refit_iter must be >= 1, got {self.refit_iter!r}")

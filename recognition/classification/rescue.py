@@ -17,7 +17,7 @@ def _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params: SelectParams, 
     """A patch none of whose models fits all points: does one primitive fit most of them?
 
     Segmented patches may include a neighbouring surface's pixels at their borders, or a piece of another
-    surface merged in. For each of plane, cylinder and sphere, keep the points within ``TRIM_SIGMA`` of it
+    surface merged in. For each of plane, cylinder and sphere, keep the points within ``trim_sigma`` of it
     and refit on them (concentration steps of a least-trimmed-squares fit, twice). When at least
     ``min_inliers`` of the points remain and the refit passes the goodness-of-fit test on them, return
     ``(label, fit, inlier fraction)`` of the one of lowest criterion on its trimmed chi²; else None.
@@ -34,9 +34,9 @@ def _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params: SelectParams, 
     found = None
     starts = [(c, fits[c]) for c in sorted(cands, key=crit.get)]
     if core is not None and core.sum() >= max(10, params.min_inliers * n * 0.5):
-        kw = {"max_points": None, "huber": params.huber, "max_iter": params.max_iter}
+        kw = {"max_points": None, "huber": params.huber, "max_iter": params.max_iter, "trim_sigma": params.trim_sigma}
         nc = None if ns is None else ns[core]
-        fresh = {"PLAN": lambda: fitting.fit_plane(ps[core], ss[core], nc),
+        fresh = {"PLAN": lambda: fitting.fit_plane(ps[core], ss[core], nc, trim_sigma=params.trim_sigma),
                  "CYL": lambda: fitting.fit_cylinder(ps[core], ss[core], nc, **kw),
                  "SPH": lambda: fitting.fit_sphere(ps[core], ss[core], **kw)}
         for c in list(cands):
@@ -49,8 +49,8 @@ def _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params: SelectParams, 
             continue
         # among those that pass, the lowest criterion on the trimmed chi² of all points (a more flexible
         # primitive always keeps at least as many inliers)
-        score = _criterion(fitting.trimmed_chi2(_residuals(got[0], ps, ss)), got[0].n_params, n, params.criterion,
-                           rho)
+        score = _criterion(fitting.trimmed_chi2(_residuals(got[0], ps, ss), params.trim_sigma), got[0].n_params, n,
+                           params.criterion, rho)
         if found is None or score < found[3]:
             found = (c, got[0], got[1], score)
     return None if found is None else found[:3]
@@ -60,9 +60,9 @@ def _trim_refit(fit, ps, ss, ns, params: SelectParams, n: int):
     """Concentration steps of one primitive (least trimmed squares: three refits on the ``min_inliers``
     fraction of points closest to the current fit); ``(fit, inlier fraction)`` if it passes, else None.
 
-    On the ``calibration`` suite these steps rescued more than two refits on the points within ``TRIM_SIGMA``
-    (accuracy 0.912 -> 0.917, factory scanner 0.950 -> 0.958): a fit pulled by a merged neighbour may leave
-    fewer than ``min_inliers`` of the points within ``TRIM_SIGMA`` at the start."""
+    On the first phase's ``calibration`` suite these steps rescued more than two refits on the points within
+    ``trim_sigma`` (accuracy 0.912 -> 0.917, factory scanner 0.950 -> 0.958): a fit pulled by a merged neighbour
+    may leave fewer than ``min_inliers`` of the points within ``trim_sigma`` at the start."""
     h = max(int(np.ceil(params.min_inliers * n)), 10)
     for _ in range(3):
         r = _residuals(fit, ps, ss)
@@ -75,7 +75,7 @@ def _trim_refit(fit, ps, ss, ns, params: SelectParams, n: int):
         if not fit.ok:
             return None
     r = _residuals(fit, ps, ss)
-    mask = np.abs(r) <= fitting.TRIM_SIGMA
+    mask = np.abs(r) <= params.trim_sigma
     frac = float(mask.mean())
     m = int(mask.sum())
     if frac < params.min_inliers:
@@ -101,9 +101,9 @@ def _residuals(fit, pts, sig) -> np.ndarray | None:
 
 
 def _refit(fit, pts, sig, nrm, params: SelectParams):
-    kw = {"max_points": None, "huber": params.huber, "max_iter": 8}
+    kw = {"max_points": None, "huber": params.huber, "max_iter": 8, "trim_sigma": params.trim_sigma}
     if isinstance(fit, fitting.PlaneFit):
-        return fitting.fit_plane(pts, sig, nrm)
+        return fitting.fit_plane(pts, sig, nrm, trim_sigma=params.trim_sigma)
     if isinstance(fit, fitting.SphereFit):
         return fitting.fit_sphere(pts, sig, init=(fit.centre, fit.radius), **kw)
     if isinstance(fit, fitting.CylinderFit):

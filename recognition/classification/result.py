@@ -8,11 +8,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from recognition import fitting
+from scenes.vocabulary import CLASSES  # the paper's classes, declared once for every layer
 
 __all__ = ["CLASSES", "Primitive", "PatchClassification"]
-
-
-CLASSES = ("PLAN", "CYL", "SPH", "CONE", "OTH")
 
 
 Primitive = fitting.PlaneFit | fitting.CylinderFit | fitting.SphereFit | fitting.ConeFit | fitting.TorusFit

@@ -19,7 +19,7 @@ that primitive's label (a neighbour merged in by the segmenter), unless the toru
 Robustness and speed of ``select`` (issue 14, measured on real simulated scans of the default suite's
 groups, with the real segmenter and with the truth segmentation): segmented patches carry mixed pixels,
 outliers and bits of a neighbouring surface, so (1) the criterion and the goodness of fit use a trimmed
-chi² (residuals beyond ``TRIM_SIGMA`` = 3.5 count as 3.5², :func:`recognition.fitting.trimmed_chi2`; the
+chi² (residuals beyond ``trim_sigma`` = 3.5 count as 3.5², :func:`recognition.fitting.trimmed_chi2`; the
 quadric's Sampson distances likewise), (2) gross outliers off the patch's bulk are dropped first
 (``outlier_k``). For speed, (3) cylinders, cones and spheres are not fitted when a linear quadratic height
 field over the plane cannot pay for their extra parameters (``plane_gate``: large planes were most of a
@@ -53,7 +53,7 @@ def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, ray
     n_in = len(pts)
     n_dropped = 0
     keep = None
-    if params.outlier_k > 0:
+    if params.outlier_k is not None:
         out = _gross_outliers(pts, sig, params.outlier_k)
         n_dropped = int(out.sum())
         if 0 < n_dropped <= 0.2 * n_in and n_in - n_dropped >= 10:
@@ -69,15 +69,15 @@ def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, ray
     idx = _subsample(n_all, params.max_points)
     # too many gross outliers to drop them all (a curved strip's rims among them): the points they leave
     # still give the trimmed rescue a start off the mixture's basin
-    core = None if keep is not None or params.outlier_k <= 0 or not out.any() else ~out[idx]
+    core = None if keep is not None or params.outlier_k is None or not out.any() else ~out[idx]
     ps, ss = pts[idx], sig[idx]
     ns = None if nrm is None else nrm[idx]
     n = len(ps)
     # points of the subsample per independent error: the image's correlation area thinned by the stride
     rho = max(1.0, float(correlation_area) * n / n_all)
-    kw = {"max_points": None, "huber": params.huber, "max_iter": params.max_iter}
+    kw = {"max_points": None, "huber": params.huber, "max_iter": params.max_iter, "trim_sigma": params.trim_sigma}
     fits: dict[str, Primitive] = {}
-    fits["PLAN"] = fitting.fit_plane(ps, ss, ns)
+    fits["PLAN"] = fitting.fit_plane(ps, ss, ns, trim_sigma=params.trim_sigma)
 
     def cap() -> float | None:
         """Early stop for fits that are clearly losing: 1.5x the best chi² so far."""
@@ -85,8 +85,8 @@ def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, ray
         return 1.5 * min(c) if c else None
 
     flat = False
-    if params.plane_gate > 0 and fits["PLAN"].ok:
-        dec = _curvature_gain(fits["PLAN"], ps, ss)
+    if params.plane_gate is not None and fits["PLAN"].ok:
+        dec = _curvature_gain(fits["PLAN"], ps, ss, params.trim_sigma)
         price = 2.0 * _price(n, "bic", rho) + (2.0 * np.log(params.planar_hint_odds) if planar_hint else 0.0)
         flat = dec / rho < params.plane_gate * price and \
             _criteria({"PLAN": fits["PLAN"]}, n, params, rho)[1]["PLAN"] >= 0.5
@@ -104,7 +104,7 @@ def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, ray
     axes = fitting.axis_candidates(ps, ss, ns, quadric=q)
     fits["CYL"] = fitting.fit_cylinder(ps, ss, ns, axes=axes, stop_above=cap(), **kw)
     skip_cone = False
-    if fits["CYL"].ok and params.cone_score_skip > 0:
+    if fits["CYL"].ok and params.cone_score_skip is not None:
         sc = _cone_score(fits["CYL"], ps, ss, params.huber)
         if sc is not None and sc[0] / rho < params.cone_score_skip * _price(n, params.criterion, rho):
             skip_cone = True
@@ -153,12 +153,12 @@ def _classify_select(pts, sig, nrm, params: SelectParams, planar_hint: bool, ray
 def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParams, planar_hint: bool, n: int,
             n_all: int, extra: dict, axes=None, ns=None, n_in: int = 0, keep=None,
             core: np.ndarray | None = None) -> PatchClassification:
-    kw = {"max_points": None, "huber": params.huber, "max_iter": params.max_iter}
+    kw = {"max_points": None, "huber": params.huber, "max_iter": params.max_iter, "trim_sigma": params.trim_sigma}
     skip_cone = extra.get("cone_skipped", False)
     rho = extra.get("correlation", 1.0)
     if params.quadric_as_other:
-        if q is not None and q.ok and _single_sheet(q, ps, fits["PLAN"]):
-            crit["OTH"] = _criterion(_quadric_chi2_trim(q, ps, ss), 9, n, params.criterion, rho) + \
+        if q is not None and q.ok and _single_sheet(q, ps, fits["PLAN"], params.single_sheet_fraction):
+            crit["OTH"] = _criterion(_quadric_chi2_trim(q, ps, ss, params.trim_sigma), 9, n, params.criterion, rho) + \
                 params.other_penalty
     if planar_hint and "PLAN" in crit:
         crit["PLAN"] -= 2.0 * np.log(params.planar_hint_odds)
@@ -183,7 +183,8 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
     # ``correlation_area`` pixels make their parameters vary up to that many times more (variance)
     sigma_scale = params.invariant_sigma_scale * math.sqrt(
         max(1.0, min(extra.get("correlation_area", 1.0), len(pts))))
-    if label == "OTH" and params.min_inliers < 1.0 and n_all >= params.min_torus_points and not _elbow(crit, gof):
+    if label == "OTH" and params.min_inliers is not None and n_all >= params.min_torus_points and \
+            not _elbow(crit, gof):
         rescue = _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params, n, rho, core)
         if rescue is not None:
             label, fit, frac = rescue
@@ -218,7 +219,7 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
         if not fit.ok:
             return _result("OTH", probs, plaus, None, {}, f"cone fit failed: {fit.reason}", details)
     if n_all > n:
-        polished = _polish(fit, pts, sig, nrm, params.huber)
+        polished = _polish(fit, pts, sig, nrm, params.huber, params.trim_sigma)
         if polished.ok:
             fit = polished
     if rays is not None and params.range_refit and isinstance(fit, fitting.CylinderFit | fitting.SphereFit):
@@ -226,7 +227,9 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
             rays = _check_rays(rays(), n_in)
             if keep is not None:
                 rays = rays[:, keep]
-        refit = fitting.refit_along_rays(fit, pts, sig, rays, huber=params.huber, max_points=params.refit_points)
+        refit = fitting.refit_along_rays(fit, pts, sig, rays, huber=params.huber, trim=params.refit_trim,
+                                         max_points=params.refit_points, max_iter=params.refit_iter,
+                                         final_points=params.refit_final_points, trim_sigma=params.trim_sigma)
         details["geometric_fit"] = fit
         fit = refit
     return _result(label, probs, plaus, fit, _invariants(fit, pts, sigma_scale), "", details)
@@ -235,11 +238,11 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
 # ------------------------------------------------------------------------------------------ helpers
 
 
-def _polish(fit: Primitive, pts, sig, nrm, huber) -> Primitive:
+def _polish(fit: Primitive, pts, sig, nrm, huber, trim_sigma: float) -> Primitive:
     """Refit the chosen primitive on all points from its subsample solution (a few iterations)."""
-    kw = {"max_points": None, "huber": huber, "max_iter": 1}
+    kw = {"max_points": None, "huber": huber, "max_iter": 1, "trim_sigma": trim_sigma}
     if isinstance(fit, fitting.PlaneFit):
-        return fitting.fit_plane(pts, sig, nrm)
+        return fitting.fit_plane(pts, sig, nrm, trim_sigma=trim_sigma)
     if isinstance(fit, fitting.SphereFit):
         return fitting.fit_sphere(pts, sig, init=(fit.centre, fit.radius), **kw)
     if isinstance(fit, fitting.CylinderFit):
@@ -250,12 +253,13 @@ def _polish(fit: Primitive, pts, sig, nrm, huber) -> Primitive:
     return fit
 
 
-def _single_sheet(q, pts: np.ndarray, plane: fitting.PlaneFit, min_fraction: float = 0.9) -> bool:
+def _single_sheet(q, pts: np.ndarray, plane: fitting.PlaneFit, min_fraction: float) -> bool:
     """True when the quadric's gradient keeps one orientation over the patch.
 
     A noisy plane is fitted better by two parallel planes ``(n.x - d - e)(n.x - d + e) = 0`` (a degenerate
     quadric with the points on both sheets), which is not a surface: such a quadric may not compete as OTH.
-    The test: the sign of ``grad f . n_plane`` must be the same for ``min_fraction`` of the points.
+    The test: the sign of ``grad f . n_plane`` must be the same for ``min_fraction`` of the points
+    (``SelectParams.single_sheet_fraction``).
     """
     if not plane.ok:
         return True
@@ -264,14 +268,14 @@ def _single_sheet(q, pts: np.ndarray, plane: fitting.PlaneFit, min_fraction: flo
     return bool(max(np.mean(s > 0), np.mean(s < 0)) >= min_fraction)
 
 
-def _quadric_chi2_trim(q, pts: np.ndarray, sig: np.ndarray) -> float:
+def _quadric_chi2_trim(q, pts: np.ndarray, sig: np.ndarray, trim_sigma: float) -> float:
     """Trimmed chi² of the quadric's Sampson distances (the same trimming as the primitives')."""
     f, grad = evaluate(q.params, pts)
     g = np.sqrt(np.einsum("ij,ij->i", grad, grad))
     with np.errstate(divide="ignore", invalid="ignore"):
         r = f / np.maximum(g, 1e-300) / sig
     r = np.where(np.isfinite(r), r, 1e6)
-    return fitting.trimmed_chi2(r)
+    return fitting.trimmed_chi2(r, trim_sigma)
 
 
 def _cone_score(cyl: fitting.CylinderFit, ps, ss, huber) -> tuple[float, tuple] | None:
@@ -331,7 +335,7 @@ def _gross_outliers(pts: np.ndarray, sig: np.ndarray, k: float) -> np.ndarray:
     return dev > k * np.maximum(spread, sig)
 
 
-def _curvature_gain(plane: fitting.PlaneFit, ps: np.ndarray, ss: np.ndarray) -> float:
+def _curvature_gain(plane: fitting.PlaneFit, ps: np.ndarray, ss: np.ndarray, trim_sigma: float) -> float:
     """Decrease of the trimmed chi² from the plane to the best quadratic height field over it (linear
     least squares in the plane's frame, residuals along its normal)."""
     e1, e2 = perpendicular_basis(plane.normal)
@@ -344,7 +348,7 @@ def _curvature_gain(plane: fitting.PlaneFit, ps: np.ndarray, ss: np.ndarray) -> 
     A = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=1) / ss[:, None]
     sol, *_ = np.linalg.lstsq(A, h / ss, rcond=None)
     r = h / ss - A @ sol
-    return _chi2_of(plane) - fitting.trimmed_chi2(r)
+    return _chi2_of(plane) - fitting.trimmed_chi2(r, trim_sigma)
 
 
 def _elbow(crit: dict[str, float], gof: dict[str, float]) -> bool:

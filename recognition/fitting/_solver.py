@@ -207,7 +207,9 @@ def _solve(fun, retract, starts, pts, sig, *, max_iter, tol, huber, max_points, 
 
 
 TRIM_SIGMA = 3.5
-"""Residuals beyond this many sigmas count as ``TRIM_SIGMA²`` in ``chi2_trim`` (a robust goodness of fit)."""
+"""The default level (sigmas) of a fit's ``chi2_trim``: residuals beyond it count as ``TRIM_SIGMA²`` (a robust
+goodness of fit). The fits' API default, for callers that do not say: the ``select`` classifier passes its own
+level, ``SelectParams.trim_sigma`` (where it was chosen: ``docs/tuning.md``)."""
 
 
 def trimmed_chi2(r: np.ndarray, c: float = TRIM_SIGMA) -> float:
@@ -216,12 +218,13 @@ def trimmed_chi2(r: np.ndarray, c: float = TRIM_SIGMA) -> float:
     return float(np.sum(np.minimum(r * r, c * c)))
 
 
-def _stats(r: np.ndarray, d: np.ndarray, k: int, n_iter: int) -> dict:
-    """Residual statistics from sigma-normalised residuals r (N,) and distances d (N,) in metres."""
+def _stats(r: np.ndarray, d: np.ndarray, k: int, n_iter: int, trim_sigma: float) -> dict:
+    """Residual statistics from sigma-normalised residuals r (N,) and distances d (N,) in metres (``chi2_trim``
+    at ``trim_sigma``)."""
     n = len(r)
     chi2 = float(np.sum(r * r))  # summed like trimmed_chi2 (rounding is monotone: chi2_trim <= chi2 exactly)
     return {"rms_m": float(np.sqrt(np.mean(d * d))), "rms_sigma": float(np.sqrt(chi2 / n)), "chi2": chi2,
-            "n_points": n, "n_iter": n_iter, "chi2_trim": trimmed_chi2(r)}
+            "n_points": n, "n_iter": n_iter, "chi2_trim": trimmed_chi2(r, trim_sigma)}
 
 
 def _local_cov(r: np.ndarray, J: np.ndarray, w: np.ndarray, k: int) -> np.ndarray:

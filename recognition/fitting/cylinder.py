@@ -17,6 +17,7 @@ from scenes.geometry import perpendicular_basis
 
 from ._solver import (
     _INIT_POINTS,
+    TRIM_SIGMA,
     _check_origin,
     _collinear,
     _extent,
@@ -281,6 +282,7 @@ def fit_cylinder(
     stop_above: float | None = None,
     max_iter: int = 20,
     tol: float = 1e-6,
+    trim_sigma: float = TRIM_SIGMA,
 ) -> CylinderFit:
     """Geometric cylinder fit (residual: distance to the axis minus the radius).
 
@@ -294,7 +296,7 @@ def fit_cylinder(
         Initial values; None: from the quadric's axis and/or the normals, then an algebraic circle fit.
     axes : list of ndarray of shape (3,), optional
         Precomputed axis candidates (see :func:`axis_candidates`), to share them between fits.
-    max_points, huber, origin, cos_min, max_iter, tol
+    max_points, huber, origin, cos_min, max_iter, tol, trim_sigma
         See :func:`fit_sphere`.
 
     Returns
@@ -347,13 +349,14 @@ def fit_cylinder(
     d = cylinder_residuals(state, pts, np.ones(n))[0]
     return CylinderFit(point=p, axis=a, radius=float(R), length=_axis_stats(pts, a, p), cov=cov,
                        radius_sigma=float(np.sqrt(cov5[4, 4])),
-                       axis_sigma_rad=float(np.sqrt(cov5[0, 0] + cov5[1, 1])), **_stats(r, d, 5, it), ok=True)
+                       axis_sigma_rad=float(np.sqrt(cov5[0, 0] + cov5[1, 1])),
+                       **_stats(r, d, 5, it, trim_sigma), ok=True)
 
 
 # --------------------------------------------------------------------------------------------- cone
 
 
-def _cone_result(state, r, J, wts, pts, sig, it, ext):
+def _cone_result(state, r, J, wts, pts, sig, it, ext, trim_sigma):
     a, p, r0, t = state
     d = cone_residuals(state, pts, np.ones(len(pts)))[0]
     n = len(pts)
@@ -376,7 +379,8 @@ def _cone_result(state, r, J, wts, pts, sig, it, ext):
         apex = p - (r0 / t) * a if t > 0 else np.full(3, np.inf)
     return ConeFit(apex=apex, axis=a, half_angle=half, length=_axis_stats(pts, a, p), point=p,
                    radius_at_point=float(r0), cov=cov, half_angle_sigma=float(np.sqrt(cov[7, 7])),
-                   axis_sigma_rad=float(np.sqrt(cov6[0, 0] + cov6[1, 1])), **_stats(r, d, 6, it), ok=True)
+                   axis_sigma_rad=float(np.sqrt(cov6[0, 0] + cov6[1, 1])),
+                   **_stats(r, d, 6, it, trim_sigma), ok=True)
 
 
 def fit_cone(
@@ -395,6 +399,7 @@ def fit_cone(
     stop_above: float | None = None,
     max_iter: int = 20,
     tol: float = 1e-6,
+    trim_sigma: float = TRIM_SIGMA,
 ) -> ConeFit:
     """Geometric cone fit (orthogonal distance to the cone's generatrix in the meridian half-plane).
 
@@ -415,7 +420,7 @@ def fit_cone(
         axis and half-angle are one more start.
     axis_search : bool
         False: start only from ``init`` (e.g. to polish a previous solution); ignored without ``init``.
-    max_points, huber, origin, cos_min, max_iter, tol
+    max_points, huber, origin, cos_min, max_iter, tol, trim_sigma
         See :func:`fit_sphere`.
 
     Returns
@@ -482,4 +487,4 @@ def fit_cone(
     if out is None:
         return _fail_cone(n, "no finite initial cone")
     st, r, J, wts, it = out
-    return _cone_result(st, r, J, wts, pts, sig, it, ext)
+    return _cone_result(st, r, J, wts, pts, sig, it, ext, trim_sigma)

@@ -19,7 +19,7 @@ import numpy as np
 
 from scenes.geometry import perpendicular_basis
 
-from ._solver import _check_origin, _FitStats, _input_problem, _local_cov, _nan_fit, _stats
+from ._solver import TRIM_SIGMA, _check_origin, _FitStats, _input_problem, _local_cov, _nan_fit, _stats
 from .algebra import check_patch, check_points, plane_params, ray_residuals
 
 __all__ = ["PlaneFit", "fit_plane", "fit_plane_lsq"]
@@ -71,6 +71,7 @@ def fit_plane(
     *,
     origin: np.ndarray | None = None,
     cos_min: float = 0.2,
+    trim_sigma: float = TRIM_SIGMA,
 ) -> PlaneFit:
     """Weighted total-least-squares plane (closed form: weighted PCA, weights ``1/sigma²``).
 
@@ -83,6 +84,8 @@ def fit_plane(
     origin, cos_min
         See :func:`fit_sphere` (with an origin the weighted fit is repeated once with the incidence-scaled
         sigmas).
+    trim_sigma : float
+        Residuals beyond this many sigmas count as ``trim_sigma²`` in the fit's ``chi2_trim``.
 
     Returns
     -------
@@ -126,7 +129,7 @@ def fit_plane(
     M[3, 0], M[3, 1], M[3, 2] = e1 @ c, e2 @ c, 1.0
     cov = M @ cov3 @ M.T
     return PlaneFit(normal=nv, offset=off, cov=cov, normal_sigma_rad=float(np.sqrt(cov3[0, 0] + cov3[1, 1])),
-                    offset_sigma=float(np.sqrt(cov[3, 3])), **_stats(r, dist, 3, 0), ok=True)
+                    offset_sigma=float(np.sqrt(cov[3, 3])), **_stats(r, dist, 3, 0, trim_sigma), ok=True)
 
 
 def fit_plane_lsq(points: np.ndarray, sigma: np.ndarray | None = None) -> PlaneFit:

@@ -9,7 +9,7 @@ import numpy as np
 
 from scenes.geometry import perpendicular_basis
 
-from ._solver import _local_cov, _robust_w, _stats, _subsample
+from ._solver import TRIM_SIGMA, _local_cov, _robust_w, _stats, _subsample
 from .cylinder import CylinderFit, _axis_stats, _cylinder_cov
 from .sphere import SphereFit
 
@@ -39,7 +39,7 @@ def _ray_hits(fit, dirs: np.ndarray) -> np.ndarray:
 
 def refit_along_rays(fit, points: np.ndarray, sigma: np.ndarray, subrays: np.ndarray | None = None, *,
                      huber: float | None = 3.0, trim: float | None = 4.0, max_points: int | None = 1500,
-                     max_iter: int = 5, final_points: int | None = 6000):
+                     max_iter: int = 5, final_points: int | None = 6000, trim_sigma: float = TRIM_SIGMA):
     """Refit a cylinder or sphere by its range-space likelihood: measured minus predicted range along each ray.
 
     The geometric fits minimise orthogonal distances, which is the likelihood of noise along the normal.
@@ -70,6 +70,8 @@ def refit_along_rays(fit, points: np.ndarray, sigma: np.ndarray, subrays: np.nda
         Huber threshold (sigma units), hard trimming threshold (sigma units: points beyond it get weight 0),
         subsample size for the iterations, iteration limit, subsample size of the last two iterations and of
         the statistics and covariance (None: all points).
+    trim_sigma : float
+        Residuals beyond this many sigmas count as ``trim_sigma²`` in the refit's ``chi2_trim``.
 
     Returns
     -------
@@ -117,7 +119,7 @@ def refit_along_rays(fit, points: np.ndarray, sigma: np.ndarray, subrays: np.nda
         return fit
     wts = _robust_w(r, huber, trim)
     cov_l = _local_cov(r, J, wts, k)
-    st = _stats(r, r * sig[ii], k, it)
+    st = _stats(r, r * sig[ii], k, it, trim_sigma)
     st["n_points"] = n
     if cyl:
         a, p, R = state

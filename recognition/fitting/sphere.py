@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._solver import (
+    TRIM_SIGMA,
     _check_origin,
     _collinear,
     _extent,
@@ -83,6 +84,7 @@ def fit_sphere(
     stop_above: float | None = None,
     max_iter: int = 15,
     tol: float = 1e-6,
+    trim_sigma: float = TRIM_SIGMA,
 ) -> SphereFit:
     """Geometric sphere fit (residual ``|x - c| - R``) from an algebraic initialisation.
 
@@ -109,6 +111,8 @@ def fit_sphere(
         chi² of a competing model: the fit is losing anyway).
     max_iter, tol : int, float
         Iteration limit and relative cost decrease at which to stop.
+    trim_sigma : float
+        Residuals beyond this many sigmas count as ``trim_sigma²`` in the fit's ``chi2_trim``.
 
     Returns
     -------
@@ -146,4 +150,4 @@ def fit_sphere(
     cov = _local_cov(r, J, wts, 4)
     d = _sphere_fun(state, pts, np.ones(n))[0]
     return SphereFit(centre=c, radius=float(R), cov=cov, radius_sigma=float(np.sqrt(cov[3, 3])),
-                     **_stats(r, d, 4, it), ok=True)
+                     **_stats(r, d, 4, it, trim_sigma), ok=True)

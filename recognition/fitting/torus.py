@@ -14,6 +14,7 @@ from scenes.geometry import perpendicular_basis
 
 from ._solver import (
     _INIT_POINTS,
+    TRIM_SIGMA,
     _collinear,
     _extent,
     _FitStats,
@@ -233,6 +234,7 @@ def fit_torus(
     stop_above: float | None = None,
     max_iter: int = 20,
     tol: float = 1e-6,
+    trim_sigma: float = TRIM_SIGMA,
 ) -> TorusFit:
     """Geometric fit of a ring torus (a pipe elbow): residual ``sqrt((rho - R)² + h²) - r``.
 
@@ -247,7 +249,7 @@ def fit_torus(
     viewpoint : ndarray of shape (3,), optional
         Where the points were seen from (the sensor; None: the frame's origin, the sensor frame). The tube
         is seen from outside, so the normals are turned to face it.
-    max_points, huber, stop_above, max_iter, tol
+    max_points, huber, stop_above, max_iter, tol, trim_sigma
         See :func:`fit_sphere`.
 
     Returns
@@ -309,7 +311,8 @@ def fit_torus(
     return TorusFit(centre=c, axis=a, major_radius=float(R), minor_radius=float(rr), sweep=_arc_span(ang),
                     cov=T @ cov7 @ T.T, major_radius_sigma=float(np.sqrt(cov7[5, 5])),
                     minor_radius_sigma=float(np.sqrt(cov7[6, 6])),
-                    axis_sigma_rad=float(np.sqrt(cov7[0, 0] + cov7[1, 1])), **_stats(r, d, 7, it), ok=True)
+                    axis_sigma_rad=float(np.sqrt(cov7[0, 0] + cov7[1, 1])),
+                    **_stats(r, d, 7, it, trim_sigma), ok=True)
 
 
 def _arc_span(ang: np.ndarray) -> float:

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from recognition.tuning import tuned
 from scenes.features import Cylinder, Plane
 from scenes.model import SceneModel
 from sensors.range_image import Scan
@@ -48,18 +49,20 @@ class IcpParams:
     tukey_rel : Tukey kernel parameter as a fraction of the pass's correspondence distance.
     max_iterations : per pass.
     min_fitness : below this inlier fraction the result is not ok.
+
+    Every field's unit and where its value was chosen: :func:`recognition.tuning.tuned` (``docs/tuning.md``).
     """
 
-    source_stride: int = 3
-    max_source_points: int = 3000
-    max_corr_rel: float = 0.03
-    max_corr_min_m: float = 0.005
-    narrow_factor: float = 3.0
-    n_passes: int = 3
-    spacing_factor: float = 2.5
-    tukey_rel: float = 0.5
-    max_iterations: int = 15
-    min_fitness: float = 0.2
+    source_stride: int = tuned(3, unit="px", chosen="not tuned: set in c9baa1a")
+    max_source_points: int = tuned(3000, unit="points", chosen="not tuned: a speed bound, set in af4da75")
+    max_corr_rel: float = tuned(0.03, unit="fraction of range", chosen="not tuned: set in af4da75")
+    max_corr_min_m: float = tuned(0.005, unit="m", chosen="not tuned: set in c9baa1a")
+    narrow_factor: float = tuned(3.0, unit="ratio", chosen="not tuned: set in af4da75")
+    n_passes: int = tuned(3, unit="count", chosen="not tuned: set in af4da75")
+    spacing_factor: float = tuned(2.5, unit="spacings", chosen="not tuned: set in af4da75")
+    tukey_rel: float = tuned(0.5, unit="fraction", chosen="not tuned: set in c9baa1a")
+    max_iterations: int = tuned(15, unit="count", chosen="not tuned: set in af4da75")
+    min_fitness: float = tuned(0.2, unit="fraction", chosen="not tuned: set in c9baa1a")
 
     def __post_init__(self):
         if self.source_stride < 1 or self.max_source_points < 10 or self.max_iterations < 1 or self.n_passes < 1:

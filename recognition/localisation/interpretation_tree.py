@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from recognition.describe import SceneDescription
+from recognition.tuning import AUTO
 from scenes.geometry import perpendicular_basis
 from scenes.model import SceneModel
 
@@ -235,8 +236,8 @@ class _Search:
         self.best_score = 0.0
         self._poses = np.zeros((64, 4, 4))
         self._n_poses = 0
-        self.dedupe_angle = math.radians(2.0)
-        self.dedupe_dist = 0.02 * length_m
+        self.dedupe_angle = math.radians(params.same_pose_angle_deg)
+        self.dedupe_dist = params.same_pose_rel * length_m
         # fewest candidates first, tempered by size: a small patch is the likeliest to be spurious or
         # misclassified, and a seed that starts with it wastes the budget
         self.order = sorted(range(len(items)), key=lambda i: (math.log(len(cands[i]) + 1.0)
@@ -438,6 +439,11 @@ def _same_pose(a: np.ndarray, b: np.ndarray, angle_rad: float, dist_m: float) ->
     return ang < angle_rad and float(np.linalg.norm(a[:3, 3] - b[:3, 3])) < dist_m
 
 
+def _length_m(params: MatchParams, items) -> float:
+    """``params.length_m``, or the items' median range when it is "auto"."""
+    return float(np.median([it.range_m for it in items])) if params.length_m == AUTO else float(params.length_m)
+
+
 def match(description: SceneDescription, model: SceneModel | ModelElements, pixel_pitch_rad: float,
           params: MatchParams = MatchParams(), prior: np.ndarray | None = None) -> MatchResult:
     """Interpretation-tree search (module docstring).
@@ -464,14 +470,15 @@ def match(description: SceneDescription, model: SceneModel | ModelElements, pixe
     cands = [cands[k] for k in keep]
     if not items:
         return MatchResult((), tuple(items), el, 0, True, (), matchable=matchable)
-    length_m = params.length_m or float(np.median([it.range_m for it in items]))
+    length_m = _length_m(params, items)
     s = _Search(items, el, cands, params, length_m)
     s.run()
     leaves = sorted(s.finish(params.max_hypotheses), key=lambda h: (-h.score, h.pose.free_dof, h.pose.cost))
     uniq: list[Hypothesis] = []
     for h in leaves:
         T = h.pose.T_world_sensor
-        if any(_same_pose(T, u.pose.T_world_sensor, math.radians(2.0), 0.02 * length_m) for u in uniq):
+        if any(_same_pose(T, u.pose.T_world_sensor, math.radians(params.same_pose_angle_deg),
+                          params.same_pose_rel * length_m) for u in uniq):
             continue
         uniq.append(h)
     uniq = sorted(_diverse(uniq, s.order, params.max_hypotheses),
@@ -497,8 +504,7 @@ def given_match(description: SceneDescription, model: SceneModel | ModelElements
     pairs = [make_pair(items[i], el, e) for i, e in pairs_idx if e >= 0]
     hyps: tuple[Hypothesis, ...] = ()
     if pairs:
-        length_m = params.length_m or float(np.median([it.range_m for it in items]))
-        pose = estimate_pose(pairs, length_m=length_m, max_sigma=params.max_free_sigma)
+        pose = estimate_pose(pairs, length_m=_length_m(params, items), max_sigma=params.max_free_sigma)
         if pose.ok:
             score = float(sum(items[i].weight for i, e in pairs_idx if e >= 0))
             hyps = (Hypothesis(tuple(pairs_idx), pose, score, len(pairs)),)

@@ -26,11 +26,12 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from recognition.describe import SceneDescription
+from recognition.tuning import tuned
 from scenes.model import SceneModel
 from sensors.range_image import Scan
 
@@ -61,12 +62,13 @@ class LocaliseParams:
         refined by the quick ICP and verified again; the agreement after it decides.
     accept_agreement, accept_margin : a first finalist agreeing at least ``accept_agreement`` after ICP,
         and ahead of a remaining finalist's (pre-ICP) agreement by ``accept_margin``, ends the refinement.
-    ambiguity_margin : another distinct pose agreeing within this margin of the best after ICP makes the
-        result ambiguous (not ok: a symmetric scene the data cannot decide).
+    ambiguity_margin : another distinct pose (not the same within ``match.same_pose_angle_deg`` and
+        ``match.same_pose_rel``) agreeing within this margin of the best after ICP makes the result ambiguous
+        (not ok: a symmetric scene the data cannot decide).
     pre_icp_rel : the agreement threshold's fraction of the range before ICP (screening and verification of
         closed-form poses; after ICP ``verify.rel`` applies).
-    min_confidence : below this final agreement the result is not ok (calibrated on the default suites:
-        right poses agreed 0.50-1.0, wrong ones up to 0.43).
+    min_confidence : below this final agreement the result is not ok (set on the first phase's default
+        suites, now ``classic``: right poses agreed 0.50-1.0, wrong ones up to 0.43).
     use_icp : run ICP (always, to tighten the pose; it also fixes the DOF the pairs leave free).
     prior_angle_deg, prior_dist_m : how far the true pose may be from ``scan.pose_prior`` (its noise);
         candidates are restricted accordingly. Ignored without a prior.
@@ -78,30 +80,41 @@ class LocaliseParams:
         sensor positions within the model's extent along the free direction, in this many steps, then a
         quarter step around the best, each scored by its agreement on a coarse prediction (pixel stride
         ``slide_stride``, about 1 ms each on VGA); the best starts the verification and ICP (which cannot
-        converge from metres away). 0: off.
+        converge from metres away). 0: no slide (a count of places).
+
+    Every field's unit and where its value was chosen: :func:`recognition.tuning.tuned` (``docs/tuning.md``).
     """
 
-    match: MatchParams = field(default_factory=lambda: MatchParams(max_hypotheses=20))
-    verify: VerifyParams = field(default_factory=VerifyParams)
-    icp: IcpParams = field(default_factory=IcpParams)
-    max_screen: int = 20
-    screen_stride: int = 8
-    max_verify: int = 6
-    icp_screen: IcpParams = field(default_factory=lambda: IcpParams(max_source_points=1500, n_passes=2,
-                                                                    max_iterations=10))
-    max_icp: int = 4
-    icp_fraction: float = 0.5
-    accept_agreement: float = 0.6
-    accept_margin: float = 0.15
-    ambiguity_margin: float = 0.05
-    pre_icp_rel: float = 0.012
-    min_confidence: float = 0.45
-    use_icp: bool = True
-    prior_angle_deg: float = 5.0
-    prior_dist_m: float = 0.3
-    second_stage_fraction: float = 0.5
-    slide_steps: int = 32
-    slide_stride: int = 16
+    match: MatchParams = tuned(default_factory=lambda: MatchParams(max_hypotheses=20), unit="-",
+                               chosen="20 hypotheses for the verification to screen (af4da75), else MatchParams'")
+    verify: VerifyParams = tuned(default_factory=VerifyParams, unit="-", chosen="VerifyParams' own defaults")
+    icp: IcpParams = tuned(default_factory=IcpParams, unit="-", chosen="IcpParams' own defaults")
+    max_screen: int = tuned(20, unit="count", chosen="the first phase's default (now classic): verifying 100 let an "
+                            "89 deg pose pass the confidence bar at 0.56 (docs/notebook.md)")
+    screen_stride: int = tuned(8, unit="px", chosen="not tuned: a speed setting, set in af4da75")
+    max_verify: int = tuned(6, unit="count", chosen="not tuned: set in c9baa1a")
+    icp_screen: IcpParams = tuned(
+        default_factory=lambda: IcpParams(max_source_points=1500, n_passes=2, max_iterations=10), unit="-",
+        chosen="not tuned: a quick ICP for the finalists, set in af4da75")
+    max_icp: int = tuned(4, unit="count", chosen="not tuned: set in af4da75")
+    icp_fraction: float = tuned(0.5, unit="fraction", chosen="not tuned: set in af4da75")
+    accept_agreement: float = tuned(0.6, unit="agreement", chosen="not tuned: set in af4da75")
+    accept_margin: float = tuned(0.15, unit="agreement", chosen="not tuned: set in af4da75")
+    ambiguity_margin: float = tuned(0.05, unit="agreement", chosen="not tuned: set in af4da75")
+    pre_icp_rel: float = tuned(0.012, unit="fraction of range", chosen="not tuned: set in af4da75")
+    min_confidence: float = tuned(
+        0.45, unit="agreement", chosen="the first phase's default suites (now classic): right poses agreed "
+        "0.50-1.0, wrong ones up to 0.43 (af4da75); not re-checked on calibration")
+    use_icp: bool = tuned(True, unit="-", chosen="on since c9baa1a (it also fixes the DOF the pairs leave free)")
+    prior_angle_deg: float = tuned(5.0, unit="deg", chosen="not tuned: set in c9baa1a")
+    prior_dist_m: float = tuned(0.3, unit="m", chosen="not tuned: set in c9baa1a")
+    second_stage_fraction: float = tuned(0.5, unit="fraction", chosen="not tuned: set in c9baa1a")
+    slide_steps: int = tuned(
+        32, unit="count", chosen="set with the slide in 72aa03b (Kinect-like constrained pose success 4 -> 5 of 9 on "
+        "the first phase's default, now classic); the count not varied")
+    slide_stride: int = tuned(
+        16, unit="px", chosen="the first phase's default (now classic): the same peak as stride 8 on the Kinect-like "
+        "trial, matching median 0.37 -> 0.22 s (740502b)")
 
     def __post_init__(self):
         if self.max_verify < 1:
@@ -204,8 +217,7 @@ def _explained(description: SceneDescription, matchable: frozenset[int], items, 
     return mask
 
 
-def _close(A: np.ndarray, B: np.ndarray, description: SceneDescription, angle_deg: float = 2.0,
-           rel: float = 0.02) -> bool:
+def _close(A: np.ndarray, B: np.ndarray, description: SceneDescription, angle_deg: float, rel: float) -> bool:
     """Whether two poses are the same up to ``angle_deg`` and ``rel`` x the scene's median range."""
     c = (np.trace(A[:3, :3].T @ B[:3, :3]) - 1.0) / 2.0
     rng = [float(np.linalg.norm(np.mean(p.points, axis=0))) for p in description.patches if len(p.points)]
@@ -388,7 +400,8 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
     after0, best, T_init, T_quick, pred_quick = outcomes[0]
     ambiguous = ""
     for other in outcomes[1:]:
-        if other[0] >= after0 - params.ambiguity_margin and not _close(other[3], T_quick, description):
+        if other[0] >= after0 - params.ambiguity_margin and not _close(
+                other[3], T_quick, description, params.match.same_pose_angle_deg, params.match.same_pose_rel):
             ambiguous = f"ambiguous: another pose agrees {other[0]:.2f} vs {after0:.2f}"
             break
     # the winner's full ICP, against the model predicted visible from its quickly refined pose

@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from recognition.describe import SceneDescription
 from recognition.fitting import ConeFit, CylinderFit, PlaneFit, SphereFit
+from recognition.tuning import AUTO, tuned
 from scenes.features import Cone, Cylinder, Plane, Sphere
 from scenes.model import SceneModel
 
@@ -66,6 +68,8 @@ class MatchParams:
         wall, 8 of its 17 candidates). On the calibration suite: constrained pose success 15/19 -> 16/19,
         the same 4 trials ok but wrong.
     width_trim : quantiles ``width_trim`` and ``1 - width_trim`` of the projections bound each width.
+    width_directions : the least width is sought over this many in-plane directions (36: 5 deg apart) ...
+    width_points : ... on at most this many of the patch's points (a regular subsample).
     max_wildcard_fraction, extra_wildcards : at most ``fraction * n_items + extra`` wildcards.
     max_nodes : node budget of the search (the limit that binds on ordinary scenes: deterministic).
     max_hypotheses : at most this many hypotheses are returned (half by score, half the best per item).
@@ -85,40 +89,65 @@ class MatchParams:
         tested against it).
     stop_fraction : the search stops once a hypothesis explains this fraction of the items' summed weight
         (after every pairing of the items seen so far has been tried, at least four items).
-    bound_ratio : kept for compatibility (the depth-limited search has no branch-and-bound step).
+    bound_ratio : not used: kept so that configurations setting it still load (the depth-limited search has
+        no branch-and-bound step).
     pose_chi2_factor : a pose fit is accepted when its whitened cost <= factor x residual count (+ 10).
-    length_m : characteristic length (m) for the free-DOF test; 0 = the median range of the items.
+    length_m : characteristic length (m) for the free-DOF test and ``same_pose_rel``; "auto": the median range
+        of the items.
     max_free_sigma : a direction with a larger sigma (rad, or ``length_m`` units) counts as free.
     prior_angle_rad, prior_dist_m : tolerances of the unary test against a pose prior (None: no prior test).
+    same_pose_angle_deg, same_pose_rel : two poses within this angle (degrees) and this fraction of
+        ``length_m`` of each other are the same pose: the search keeps one hypothesis of them, and
+        :func:`recognition.localisation.localise` does not count it as a distinct alternative (the scale there:
+        the median range of the description's patches).
+
+    Every field's unit and where its value was chosen: :func:`recognition.tuning.tuned` (``docs/tuning.md``).
     """
 
-    min_pixels: int = 150
-    max_items: int = 30
-    k_sigma: float = 3.0
-    angle_floor_rad: float = math.radians(1.0)
-    angle_floor_px_rad: float = math.radians(1.5)
-    dist_floor_m: float = 0.002
-    dist_floor_rel: float = 0.004
-    radius_rel_tol: float = 0.08
-    half_angle_tol_rad: float = math.radians(3.0)
-    length_slack: float = 1.15
-    width_test: bool = True
-    width_trim: float = 0.01
-    max_wildcard_fraction: float = 0.4
-    extra_wildcards: int = 2
-    max_nodes: int = 1500
-    max_hypotheses: int = 12
-    bound_ratio: float = 0.7
-    max_time_s: float = 3.0
-    max_wall_s: float = 6.0
-    size_weight: float = 0.25
-    max_seed_size: int = 3
-    stop_fraction: float = 0.9
-    pose_chi2_factor: float = 9.0
-    length_m: float = 0.0
-    max_free_sigma: float = 0.1
-    prior_angle_rad: float | None = None
-    prior_dist_m: float | None = None
+    min_pixels: int = tuned(150, unit="px", chosen="not tuned: set with the tree in c9baa1a")
+    max_items: int = tuned(30, unit="count", chosen="not tuned: a bound, set in c9baa1a")
+    k_sigma: float = tuned(3.0, unit="sigma", chosen="not tuned here: within the 1.5-3x the first prototype "
+                           "measured before this code (c9baa1a)")
+    angle_floor_rad: float = tuned(math.radians(1.0), unit="rad", chosen="not tuned: set in c9baa1a (plane "
+                                   "normals were 3 deg off against a reported 0.5 deg in the prototype)")
+    angle_floor_px_rad: float = tuned(math.radians(1.5), unit="rad", chosen="not tuned: set in c9baa1a")
+    dist_floor_m: float = tuned(0.002, unit="m", chosen="not tuned: set in c9baa1a")
+    dist_floor_rel: float = tuned(0.004, unit="fraction of range", chosen="not tuned: set in c9baa1a")
+    radius_rel_tol: float = tuned(0.08, unit="fraction", chosen="not tuned: set in c9baa1a")
+    half_angle_tol_rad: float = tuned(math.radians(3.0), unit="rad", chosen="not tuned: set in c9baa1a")
+    length_slack: float = tuned(1.15, unit="ratio", chosen="not tuned: set in c9baa1a")
+    width_test: bool = tuned(True, unit="-", chosen="calibration (phase 1): constrained pose success 15/19 -> "
+                             "16/19, the same 4 ok-but-wrong (9101156)")
+    width_trim: float = tuned(0.01, unit="fraction", chosen="not tuned: set with the width test in 9101156")
+    max_wildcard_fraction: float = tuned(0.4, unit="fraction", chosen="not tuned here: the first prototype's "
+                                         "limit (40 % of the patches + 2; c9baa1a)")
+    extra_wildcards: int = tuned(2, unit="count", chosen="not tuned here: the first prototype's limit (c9baa1a)")
+    max_nodes: int = tuned(1500, unit="count", chosen="not tuned: a budget, set in af4da75 (the first prototype "
+                           "needed about 1,000)")
+    max_hypotheses: int = tuned(12, unit="count", chosen="not tuned: set in c9baa1a (localise asks for 20)")
+    bound_ratio: float = tuned(0.7, unit="-", chosen="not used (kept so that configurations setting it load)")
+    max_time_s: float = tuned(3.0, unit="s (CPU)", chosen="a safety net, 1 -> 3 s after a search stopped on time "
+                              "under the benchmark's load (03ed3d2); the node budget binds first")
+    max_wall_s: float = tuned(6.0, unit="s", chosen="a safety net, 2 -> 6 s with max_time_s (03ed3d2)")
+    size_weight: float = tuned(
+        0.25, unit="-", chosen="the first phase's default (now classic): 0.5 -> 0.25 keeps mock-up and factory "
+        "constrained trials at 100 %, Kinect-like unchanged (5745704)")
+    max_seed_size: int = tuned(3, unit="pairs", chosen="not tuned: set in af4da75")
+    stop_fraction: float = tuned(0.9, unit="fraction", chosen="not tuned: set in af4da75")
+    pose_chi2_factor: float = tuned(9.0, unit="ratio", chosen="not tuned: set in c9baa1a")
+    length_m: float | Literal["auto"] = tuned("auto", unit="m", chosen="the items' median range (formerly spelled "
+                                              "0; c9baa1a)")
+    max_free_sigma: float = tuned(0.1, unit="rad or length_m", chosen="not tuned: set in c9baa1a")
+    prior_angle_rad: float | None = tuned(None, unit="rad", chosen="off: localise sets it from "
+                                          "LocaliseParams.prior_angle_deg when the scan has a prior")
+    prior_dist_m: float | None = tuned(None, unit="m", chosen="off: localise sets it from "
+                                       "LocaliseParams.prior_dist_m when the scan has a prior")
+    same_pose_angle_deg: float = tuned(2.0, unit="deg", chosen="not tuned: set in af4da75")
+    same_pose_rel: float = tuned(0.02, unit="fraction of length_m", chosen="not tuned: set in af4da75")
+    width_directions: int = tuned(36, unit="count", chosen="not tuned: 5 deg apart, set with the width test in "
+                                  "9101156")
+    width_points: int = tuned(2000, unit="points", chosen="not tuned: a speed bound, set with the width test in "
+                              "9101156")
 
     def __post_init__(self):
         for name in ("k_sigma", "dist_floor_rel", "radius_rel_tol", "length_slack", "pose_chi2_factor",
@@ -130,8 +159,16 @@ class MatchParams:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0 <= self.max_wildcard_fraction <= 1:
             raise ValueError(f"max_wildcard_fraction must be in [0, 1], got {self.max_wildcard_fraction}")
-        if self.extra_wildcards < 0 or self.length_m < 0:
-            raise ValueError("extra_wildcards and length_m must be >= 0")
+        if self.extra_wildcards < 0:
+            raise ValueError(f"extra_wildcards must be >= 0, got {self.extra_wildcards}")
+        if self.length_m != AUTO and not self.length_m > 0:
+            raise ValueError(f"length_m must be > 0 or 'auto', got {self.length_m!r}")
+        for name in ("same_pose_angle_deg", "same_pose_rel"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.width_directions < 1 or self.width_points < 3:
+            raise ValueError(f"width_directions must be >= 1 and width_points >= 3, got {self.width_directions}, "
+                             f"{self.width_points}")
         if not 0 <= self.width_trim < 0.5:
             raise ValueError(f"width_trim must be in [0, 0.5), got {self.width_trim}")
 
@@ -320,7 +357,7 @@ def _item(index, patch, fit, pitch, params: MatchParams) -> SceneItem | None:
         area = float(np.sum((rr * pitch) ** 2 / np.maximum(cos_i, 0.2)))
         return SceneItem(index, patch.id, "PLAN", nv, centroid, n, math.log(n), nan, nan, nan, nan, extent, area,
                          max(s_ang, floor_a / k), max(s_off, floor_d / k), k * s_ang + floor_a,
-                         k * s_off + floor_d, rng_m, _min_width(inplane @ evec[:, 1:], params.width_trim))
+                         k * s_off + floor_d, rng_m, _min_width(inplane @ evec[:, 1:], params))
     if patch.label == "CYL" and isinstance(fit, CylinderFit):
         C = np.asarray(fit.cov)
         s_pos = math.sqrt(max(np.trace(C[:3, :3]) / 2.0, 0.0)) if np.all(np.isfinite(C[:3, :3])) else floor_d
@@ -352,20 +389,23 @@ def _item(index, patch, fit, pitch, params: MatchParams) -> SceneItem | None:
 # -------------------------------------------------------------------------------- unary constraints
 
 
-_WIDTH_DIRECTIONS = 36  # in-plane directions (5 deg apart) over which the least width is sought
-# the least of those widths exceeds the true least width by at most this share of the patch's extent
-_WIDTH_STEP_ERROR = math.sin(math.pi / (2 * _WIDTH_DIRECTIONS))
+def _width_step_error(params: MatchParams) -> float:
+    """The least of the widths over ``width_directions`` directions exceeds the true least width by at most
+    this share of the patch's extent."""
+    return math.sin(math.pi / (2 * params.width_directions))
 
 
-def _min_width(uv: np.ndarray, trim: float, max_points: int = 2000) -> float:
-    """Least width (metres) of in-plane points ``uv`` (N, 2) over ``_WIDTH_DIRECTIONS`` directions, each span
-    taken between the ``trim`` and ``1 - trim`` quantiles (stray pixels off the face do not widen it); NaN
-    for fewer than 3 points. A patch inside a rectangle is never wider than its short side."""
+def _min_width(uv: np.ndarray, params: MatchParams) -> float:
+    """Least width (metres) of in-plane points ``uv`` (N, 2) over ``width_directions`` directions (on at most
+    ``width_points`` of them), each span taken between the ``width_trim`` and ``1 - width_trim`` quantiles (stray
+    pixels off the face do not widen it); NaN for fewer than 3 points. A patch inside a rectangle is never
+    wider than its short side."""
+    trim, max_points = params.width_trim, params.width_points
     if len(uv) < 3:
         return float("nan")
     if len(uv) > max_points:
         uv = uv[np.linspace(0, len(uv) - 1, max_points).astype(np.int64)]
-    a = np.linspace(0.0, np.pi, _WIDTH_DIRECTIONS, endpoint=False)
+    a = np.linspace(0.0, np.pi, params.width_directions, endpoint=False)
     proj = uv @ np.stack([np.cos(a), np.sin(a)])  # (N, directions)
     lo, hi = np.quantile(proj, [trim, 1.0 - trim], axis=0)
     return float(np.min(hi - lo))
@@ -384,7 +424,7 @@ def unary_candidates(item: SceneItem, el: ModelElements, params: MatchParams,
         ok &= item.area <= slack**2 * el.area[idx] + item.length * item.dist_tol
         if params.width_test and np.isfinite(item.width):
             ok &= item.width <= (slack * 2.0 * el.half_size[idx].min(axis=1) + item.dist_tol
-                                 + _WIDTH_STEP_ERROR * item.length)
+                                 + _width_step_error(params) * item.length)
     elif item.kind in ("CYL", "SPH"):
         # a radius not known to within its own size (a wall strip fitted as a cylinder of 20 m) pairs with no
         # pipe or tank: any of them would pass, and its axis or centre would then fix the pose at random

@@ -2,7 +2,7 @@
 
 Both take the registered scan and the a priori model, find the data the model does not explain, cluster it
 into connected pieces of the image, and turn the evidence into the core's labels
-(:data:`recognition.change.LABELS`):
+(:data:`scenes.vocabulary.CHANGE_MAP_LABELS`):
 
 * ``diff_change`` - **per-pixel differencing** of the measured range against the model's predicted range
   image at the estimated pose: a pixel is explained when ``|range - predicted| <= tau``, *behind* (the model
@@ -38,7 +38,6 @@ import scipy.ndimage as ndi
 from scipy.spatial import cKDTree
 
 from recognition.change import (
-    LABELS,
     PIXEL_BEHIND,
     PIXEL_EXPLAINED,
     PIXEL_FRONT,
@@ -48,7 +47,9 @@ from recognition.change import (
     object_label,
 )
 from recognition.describe import core_sigma
+from recognition.tuning import tuned
 from scenes.model import SceneModel
+from scenes.vocabulary import ALTERED, CHANGE_MAP_LABELS, MISSING, MOVED, NEW, UNCHANGED, UNOBSERVED
 from sensors.range_image import Scan
 
 __all__ = ["DiffChangeParams", "diff_changes", "available_peers", "missing_peers"]
@@ -66,20 +67,22 @@ class DiffChangeParams:
     move_radius_m, size_ratio : how far and how different in size a cluster may be to make a feature moved.
     new_min_pixels : smallest unexplained cluster reported new.
     model_spacing_m : sampling of the model for C2M.
+
+    Every field's unit and where its value was chosen: :func:`recognition.tuning.tuned` (``docs/tuning.md``).
     """
 
-    distance: str = "range"
-    k_sigma: float = 4.0
-    min_threshold_m: float = 0.01
-    pose_sigma_m: float = 5e-4
-    pose_sigma_rad: float = 2e-4
-    min_pixels: int = 40
-    present_fraction: float = 0.5
-    altered_fraction: float = 0.2
-    move_radius_m: float = 0.6
-    size_ratio: float = 4.0
-    new_min_pixels: int = 60
-    model_spacing_m: float = 0.01
+    distance: str = tuned("range", unit="-", chosen="per-pixel differencing (c2m_change sets c2m)")
+    k_sigma: float = tuned(4.0, unit="sigma", chosen="not tuned: the core's ChangeParams.k_sigma (a837a85)")
+    min_threshold_m: float = tuned(0.01, unit="m", chosen="not tuned: set in a837a85")
+    pose_sigma_m: float = tuned(5e-4, unit="m", chosen="not tuned: the core's pose sigma floor (a837a85)")
+    pose_sigma_rad: float = tuned(2e-4, unit="rad", chosen="not tuned: the core's pose sigma floor (a837a85)")
+    min_pixels: int = tuned(40, unit="px", chosen="not tuned: the core's ChangeParams.min_pixels (a837a85)")
+    present_fraction: float = tuned(0.5, unit="fraction", chosen="not tuned: the core's value (a837a85)")
+    altered_fraction: float = tuned(0.2, unit="fraction", chosen="not tuned: set in a837a85")
+    move_radius_m: float = tuned(0.6, unit="m", chosen="not tuned: set in a837a85")
+    size_ratio: float = tuned(4.0, unit="ratio", chosen="not tuned: set in a837a85")
+    new_min_pixels: int = tuned(60, unit="px", chosen="not tuned: the core's ChangeParams.new_min_pixels (a837a85)")
+    model_spacing_m: float = tuned(0.01, unit="m", chosen="not tuned: set in a837a85")
 
     def __post_init__(self):
         if self.distance not in ("range", "c2m"):
@@ -212,15 +215,15 @@ def diff_changes(scan: Scan, model: SceneModel, T_world_sensor: np.ndarray, pred
         found, revealed, occl = int(expl_flat[fp].sum()), int(miss_flat[fp].sum()), int(occl_flat[fp].sum())
         judged = found + revealed
         if judged < params.min_pixels:
-            features[fid] = FeatureChange("unobserved", None, (), found, revealed, occl, "too few pixels judged")
+            features[fid] = FeatureChange(UNOBSERVED, None, (), found, revealed, occl, "too few pixels judged")
         elif found >= params.present_fraction * judged:
-            features[fid] = FeatureChange("unchanged", None, (), found, revealed, occl, "explained")
+            features[fid] = FeatureChange(UNCHANGED, None, (), found, revealed, occl, "explained")
         elif found >= params.altered_fraction * judged:
-            features[fid] = FeatureChange("altered", None, (), found, revealed, occl, "partly explained")
+            features[fid] = FeatureChange(ALTERED, None, (), found, revealed, occl, "partly explained")
         else:
             centroid = _world(T, rays_flat[fp] * pred_flat[fp][:, None]).mean(axis=0)
             absent.append((fid, centroid, len(fp)))
-            features[fid] = FeatureChange("missing", None, (), found, revealed, occl, "predicted, not found")
+            features[fid] = FeatureChange(MISSING, None, (), found, revealed, occl, "predicted, not found")
     claimed: set[int] = set()
     pairs = sorted((float(np.linalg.norm(cluster_centroid[c] - cen)), fid, c, n)
                    for fid, cen, n in absent for c in cluster_pix)
@@ -231,23 +234,23 @@ def diff_changes(scan: Scan, model: SceneModel, T_world_sensor: np.ndarray, pred
         ratio = len(cluster_pix[c]) / max(n, 1)
         if 1 / params.size_ratio <= ratio <= params.size_ratio:
             old = features[fid]
-            features[fid] = FeatureChange("moved", dist, (c,), old.found, old.revealed, old.occluded,
+            features[fid] = FeatureChange(MOVED, dist, (c,), old.found, old.revealed, old.occluded,
                                           "an unexplained cluster nearby")
             claimed.add(c)
             moved.add(fid)
     for f in model.features:
-        features.setdefault(f.id, FeatureChange("unobserved", reason="not predicted visible"))
+        features.setdefault(f.id, FeatureChange(UNOBSERVED, reason="not predicted visible"))
     new = tuple(sorted(c for c in cluster_pix if c not in claimed))
     objects = {o.id: object_label([features[f.id] for f in o.features]) for o in model.objects}
     label_map = np.full(shape, -1, dtype=np.int8)
     lm = label_map.reshape(-1)
     for fid, fp in feature_pixels.items():
-        if features[fid].label != "unobserved":
-            lm[fp] = LABELS.index(features[fid].label)
+        if features[fid].label != UNOBSERVED:
+            lm[fp] = CHANGE_MAP_LABELS.index(features[fid].label)
     for fid in moved:
-        lm[cluster_pix[features[fid].patches[0]]] = LABELS.index("moved")
+        lm[cluster_pix[features[fid].patches[0]]] = CHANGE_MAP_LABELS.index(MOVED)
     for c in new:
-        lm[cluster_pix[c]] = LABELS.index("new")
+        lm[cluster_pix[c]] = CHANGE_MAP_LABELS.index(NEW)
     return ChangeResult(features, objects, new, pix, label_map, {c: cluster_pix[c] for c in new},
                         {"change": time.perf_counter() - t0 - t_model, "model": t_model})
 

@@ -33,7 +33,7 @@ import math
 import random
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import scipy.ndimage as ndi
@@ -43,6 +43,7 @@ from recognition.classification import CLASSES, PatchClassification
 from recognition.describe import SceneDescription, ScenePatch, core_sigma
 from recognition.fitting import fit_plane_lsq, fit_quadric_lsq
 from recognition.segmentation import Patch, Segmentation, SurfaceType
+from recognition.tuning import AUTO, tuned
 from sensors.range_image import Scan
 
 __all__ = ["PrimitiveParams", "detect_primitives", "image_normals", "available_peers", "missing_peers"]
@@ -62,27 +63,33 @@ class PrimitiveParams:
     detector : ``"cgal"`` (Efficient RANSAC) or ``"pyransac3d"``.
     shapes : shape types to detect (pyransac3d ignores ``cone``).
     max_points : most sample points given to the detector.
-    epsilon : inlier distance; None: ``3 x`` the median sigma (>= 3 mm).
-    cluster_epsilon : CGAL's connectivity distance; None: 3 sample spacings at the median range.
+    epsilon : inlier distance; "auto": ``3 x`` the median sigma (>= 3 mm).
+    cluster_epsilon : CGAL's connectivity distance; "auto": 3 sample spacings at the median range.
     normal_threshold : CGAL's smallest |cos| between a point's normal and the shape's.
     probability : CGAL's probability of missing the largest candidate shape.
     min_pixels : smallest shape in full-image pixels.
     iterations : pyransac3d's RANSAC iterations per shape type and round.
     max_shapes : pyransac3d's most extraction rounds.
     seed : pyransac3d's seed (CGAL cannot be seeded).
+
+    Every field's unit and where its value was chosen: :func:`recognition.tuning.tuned` (``docs/tuning.md``).
     """
 
-    detector: str = "cgal"
-    shapes: tuple[str, ...] = SHAPES
-    max_points: int = 40_000
-    epsilon: float | None = None
-    cluster_epsilon: float | None = None
-    normal_threshold: float = 0.9
-    probability: float = 0.01
-    min_pixels: int = 200
-    iterations: int = 300
-    max_shapes: int = 40
-    seed: int = 0
+    detector: str = tuned("cgal", unit="-", chosen="CGAL's Efficient RANSAC (the pyransac3d peer sets pyransac3d)")
+    shapes: tuple[str, ...] = tuned(SHAPES, unit="-", chosen="every primitive the core labels")
+    max_points: int = tuned(40_000, unit="points", chosen="not tuned: a speed bound, set in a837a85 (the "
+                            "pyransac3d peer uses 8000)")
+    epsilon: float | Literal["auto"] = tuned(
+        "auto", unit="m", chosen="not tuned: 3x the median sigma, >= 3 mm (formerly spelled None; a837a85)")
+    cluster_epsilon: float | Literal["auto"] = tuned(
+        "auto", unit="m", chosen="not tuned: 3 sample spacings at the median range (formerly spelled None; "
+        "a837a85)")
+    normal_threshold: float = tuned(0.9, unit="|cos|", chosen="not tuned: set in a837a85")
+    probability: float = tuned(0.01, unit="probability", chosen="not tuned: set in a837a85")
+    min_pixels: int = tuned(200, unit="px", chosen="not tuned: the 200-pixel floor of the scored regions (a837a85)")
+    iterations: int = tuned(300, unit="count", chosen="not tuned: set in a837a85 (the pyransac3d peer uses 200)")
+    max_shapes: int = tuned(40, unit="count", chosen="not tuned: set in a837a85 (the pyransac3d peer uses 25)")
+    seed: int = tuned(0, unit="-", chosen="a fixed seed (reproducible)")
 
     def __post_init__(self):
         if self.detector not in ("cgal", "pyransac3d"):
@@ -92,8 +99,8 @@ class PrimitiveParams:
             raise ValueError(f"shapes must be a non-empty subset of {SHAPES}, got {self.shapes}")
         for name in ("epsilon", "cluster_epsilon"):
             v = getattr(self, name)
-            if v is not None and not v > 0:
-                raise ValueError(f"{name} must be > 0, got {v}")
+            if v != AUTO and not (isinstance(v, int | float) and not isinstance(v, bool) and v > 0):
+                raise ValueError(f"{name} must be > 0 or 'auto', got {v!r}")
         if self.max_points < 100 or self.min_pixels < 1 or self.iterations < 1 or self.max_shapes < 1:
             raise ValueError("max_points >= 100, min_pixels, iterations and max_shapes >= 1 required")
         if not 0 < self.probability < 1 or not 0 <= self.normal_threshold < 1:
@@ -292,9 +299,10 @@ def detect_primitives(scan: Scan, params: PrimitiveParams = PrimitiveParams()) -
         pts = scan.points[rows, cols]
         nrm = normals[rows, cols]
         med_sigma = float(np.nanmedian(sigma[ok]))
-        eps = params.epsilon or max(3 * med_sigma, 3e-3)
+        eps = max(3 * med_sigma, 3e-3) if params.epsilon == AUTO else params.epsilon
         med_range = float(np.median(scan.range[ok]))
-        cluster_eps = params.cluster_epsilon or 3 * stride * scan.sensor.pixel_pitch_rad * med_range
+        cluster_eps = (3 * stride * scan.sensor.pixel_pitch_rad * med_range if params.cluster_epsilon == AUTO
+                       else params.cluster_epsilon)
         min_points = max(10, params.min_pixels // stride**2)
         if params.detector == "cgal":
             sample_labels, types = _cgal_detect(pts, nrm, eps, cluster_eps, min_points, params)
@@ -399,12 +407,12 @@ def available_peers() -> list:
     if not _importable("CGAL.CGAL_Shape_detection"):
         out.append(Peer("efficient_ransac", "description", _runner("cgal"),
                         "Efficient RANSAC (Schnabel et al. 2007, CGAL) planes/cylinders/spheres/cones; "
-                        "not seedable (CGAL seeds from the clock)", {"epsilon": None, "probability": 0.01},
+                        "not seedable (CGAL seeds from the clock)", {"epsilon": AUTO, "probability": 0.01},
                         deterministic=False))
     if not _importable("pyransac3d"):
         out.append(Peer("pyransac3d", "description", _runner("pyransac3d"),
                         "pyransac3d sequential RANSAC planes/cylinders/spheres, split into connected pieces",
-                        {"epsilon": None, "max_points": 8000, "iterations": 200, "max_shapes": 25}))
+                        {"epsilon": AUTO, "max_points": 8000, "iterations": 200, "max_shapes": 25}))
     return out
 
 

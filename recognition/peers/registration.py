@@ -31,15 +31,15 @@ RANSAC's parallel sampling is not reproducible across thread schedules) for the 
 
 from __future__ import annotations
 
-import math
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
 from recognition.localisation import ModelPredictor, PoseResult
+from recognition.tuning import AUTO, tuned
 from scenes.model import SceneModel
 from sensors.range_image import Scan
 
@@ -53,8 +53,8 @@ class RegistrationParams:
     Attributes
     ----------
     method : ``"ransac"`` (FPFH + RANSAC) or ``"fgr"`` (Fast Global Registration).
-    voxel_size : downsampling voxel; None: 1 % of the scan's median range, clipped to [0.02, 0.2].
-    icp_voxel_size : voxel of the scan for ICP; None: half ``voxel_size``, at least 1 cm.
+    voxel_size : downsampling voxel; "auto": 1 % of the scan's median range, clipped to [0.02, 0.2].
+    icp_voxel_size : voxel of the scan for ICP; "auto": half ``voxel_size``, at least 1 cm.
     crop : ``"auto"`` (the prior's visible model when the scan has a prior, else the whole model),
         ``"prior"`` (require a prior), ``"none"`` (always the whole model).
     max_iterations, confidence : RANSAC convergence criteria.
@@ -62,18 +62,23 @@ class RegistrationParams:
     min_fitness : smallest final ICP fitness accepted as a success.
     seed : Open3D's RNG seed.
     threads : Open3D's thread count during the call (1: reproducible).
+
+    Every field's unit and where its value was chosen: :func:`recognition.tuning.tuned` (``docs/tuning.md``).
     """
 
-    method: str = "ransac"
-    voxel_size: float | None = None
-    icp_voxel_size: float | None = None
-    crop: str = "auto"
-    max_iterations: int = 100_000
-    confidence: float = 0.999
-    icp_iterations: int = 30
-    min_fitness: float = 0.4
-    seed: int = 0
-    threads: int = 1
+    method: str = tuned("ransac", unit="-", chosen="FPFH + RANSAC (the fgr peer sets fgr)")
+    voxel_size: float | Literal["auto"] = tuned(
+        "auto", unit="m", chosen="not tuned: 1 % of the median range (formerly spelled None; a837a85); "
+        "python -m harness.bench.peers sweeps it")
+    icp_voxel_size: float | Literal["auto"] = tuned(
+        "auto", unit="m", chosen="not tuned: half voxel_size, >= 1 cm (formerly spelled None; a837a85)")
+    crop: str = tuned("auto", unit="-", chosen="the prior's visible model when the scan has a prior (a837a85)")
+    max_iterations: int = tuned(100_000, unit="count", chosen="not tuned: Open3D's tutorial value (a837a85)")
+    confidence: float = tuned(0.999, unit="probability", chosen="not tuned: Open3D's tutorial value (a837a85)")
+    icp_iterations: int = tuned(30, unit="count", chosen="not tuned: set in a837a85")
+    min_fitness: float = tuned(0.4, unit="fraction", chosen="not tuned: set in a837a85")
+    seed: int = tuned(0, unit="-", chosen="a fixed seed (reproducible)")
+    threads: int = tuned(1, unit="count", chosen="1: reproducible results")
 
     def __post_init__(self):
         if self.method not in ("ransac", "fgr"):
@@ -82,8 +87,8 @@ class RegistrationParams:
             raise ValueError(f"crop must be 'auto', 'prior' or 'none', got {self.crop!r}")
         for name in ("voxel_size", "icp_voxel_size"):
             v = getattr(self, name)
-            if v is not None and not v > 0:
-                raise ValueError(f"{name} must be > 0, got {v}")
+            if v != AUTO and not (isinstance(v, int | float) and not isinstance(v, bool) and v > 0):
+                raise ValueError(f"{name} must be > 0 or 'auto', got {v!r}")
         if not 0 < self.confidence < 1:
             raise ValueError(f"confidence must be in (0, 1), got {self.confidence}")
         if self.max_iterations < 1 or self.icp_iterations < 1 or self.threads < 1:
@@ -228,8 +233,8 @@ def _register(scan: Scan, model: SceneModel, predictor: ModelPredictor, params: 
     o3d = _o3d()
     reg = o3d.pipelines.registration
     timing = {"model": 0.0, "matching": 0.0, "icp": 0.0, "predict": 0.0}
-    voxel = params.voxel_size or scene_voxel(scan)
-    icp_voxel = params.icp_voxel_size or max(voxel / 2, 0.01)
+    voxel = scene_voxel(scan) if params.voxel_size == AUTO else params.voxel_size
+    icp_voxel = max(voxel / 2, 0.01) if params.icp_voxel_size == AUTO else params.icp_voxel_size
     if params.crop == "prior" and scan.pose_prior is None:
         raise ValueError("crop='prior' needs a scan with a pose prior")
     t0 = time.perf_counter()
@@ -318,12 +323,6 @@ def _runner(method: str):
     return run
 
 
-def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
-    """``arccos((tr(R_est R_gt') - 1) / 2)`` in degrees (bop_toolkit's definition)."""
-    c = (np.trace(R_est @ R_gt.T) - 1) / 2
-    return math.degrees(math.acos(float(np.clip(c, -1.0, 1.0))))
-
-
 def available_peers() -> list:
     """The registration peers (Open3D is a core dependency: always available)."""
     from recognition.peers import Peer
@@ -336,10 +335,10 @@ def available_peers() -> list:
     return [
         Peer("fpfh_ransac", "pose", _runner("ransac"),
              f"Open3D FPFH + RANSAC global registration + ICP; {common}",
-             {"voxel_size": None, "crop": "auto", "max_iterations": 100_000, "confidence": 0.999}),
+             {"voxel_size": AUTO, "crop": "auto", "max_iterations": 100_000, "confidence": 0.999}),
         Peer("fgr", "pose", _runner("fgr"),
              f"Open3D FPFH + Fast Global Registration + ICP; {common}",
-             {"voxel_size": None, "crop": "auto"}),
+             {"voxel_size": AUTO, "crop": "auto"}),
     ]
 
 

@@ -32,7 +32,8 @@ def curvature_images(points: np.ndarray, sigma: np.ndarray, params: Segmentation
         ``H`` (1/m) with the normal facing the sensor, ``K`` (1/m²), their sigmas, unit normals (H, W, 3),
         and ``sigma_normal`` (H, W), radians, the propagated angular sigma of the normal.
     """
-    der = quadratic_derivatives(points, sigma, params.window, params.jump_k, params.jump_tan, jumps=jumps)
+    der = quadratic_derivatives(points, sigma, params.window, params.jump_k, params.jump_tan,
+                                max_variance_ratio=params.max_variance_ratio, jumps=jumps)
     Pu, Pv = der.Pu, der.Pv
     E = np.einsum("ijk,ijk->ij", Pu, Pu)
     F = np.einsum("ijk,ijk->ij", Pu, Pv)

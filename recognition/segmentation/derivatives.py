@@ -33,6 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.ndimage as ndi
 
+from .types import SegmentationParams
+
 __all__ = [
     "SurfaceDerivatives",
     "jump_threshold",
@@ -233,7 +235,7 @@ def quadratic_derivatives(
     jump_k: float,
     jump_tan: float,
     min_support: int | None = None,
-    max_variance_ratio: float = 25.0,
+    max_variance_ratio: float = SegmentationParams.max_variance_ratio,
     chunk: int = 8192,
     jumps: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> SurfaceDerivatives:
@@ -251,7 +253,8 @@ def quadratic_derivatives(
         Fewest window pixels for a fit (default ``max(9, w² // 3)``).
     max_variance_ratio : float
         A masked window whose second-derivative variance exceeds this multiple of the full window's is
-        too ill-conditioned: its derivatives are NaN.
+        too ill-conditioned: its derivatives are NaN (default: the segmentation's,
+        :attr:`SegmentationParams.max_variance_ratio`).
     chunk : int
         Pixels per batch of the masked path (bounds memory).
     jumps : (ndarray, ndarray), optional

@@ -35,14 +35,15 @@ def _image_grid(points: np.ndarray, sigma: np.ndarray,
     angles = ray_angles(rays)
     jump_h, jump_v = jump_pairs(rng, sig, rays, params.jump_k, params.jump_tan, angles)
     if params.calibrate_noise:
-        scale = noise_scale(rng, sig, valid, jump_h, jump_v, params.window, params.max_noise_scale)
+        scale = noise_scale(rng, sig, valid, jump_h, jump_v, params.window, params.max_noise_scale,
+                            params.noise_block)
         sig = sig * scale
         jump_h, jump_v = jump_pairs(rng, sig, rays, params.jump_k, params.jump_tan, angles)
     return _Grid(pts, sig, valid, rng, rays, jump_h, jump_v), declared, scale
 
 
 def noise_scale(rng: np.ndarray, sigma: np.ndarray, valid: np.ndarray, jump_h: np.ndarray, jump_v: np.ndarray,
-                window: int, max_scale: float = 10.0, block: int = 8) -> np.ndarray:
+                window: int, max_scale: float, block: int) -> np.ndarray:
     """Ratio of the range noise measured in the image to the declared sigma, per pixel, clipped to
     ``[1, max_scale]`` (an (H, W) array).
 

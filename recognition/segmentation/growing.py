@@ -98,12 +98,14 @@ def _grow(labels: np.ndarray, P: np.ndarray, st: _State, links, max_iter: int, t
 
 
 def _tile_small_leftovers(comp: np.ndarray, st: _State, params: SegmentationParams) -> np.ndarray:
-    """Leftover components below ``max_tiled_leftover`` pixels go through :func:`_split_bad_seeds`
-    (pieces under ``min_seed_pixels`` are released); labels stay 0..n-1, -1 elsewhere."""
+    """Leftover components below ``max_tiled_leftover`` pixels (all of them when it is None) go through
+    :func:`_split_bad_seeds` (pieces under ``min_seed_pixels`` are released); labels stay 0..n-1, -1 elsewhere."""
     if not (comp >= 0).any():
         return comp
     sizes = np.bincount(comp[comp >= 0])
-    small = (comp >= 0) & (sizes[np.maximum(comp, 0)] < params.max_tiled_leftover)
+    small = comp >= 0
+    if params.max_tiled_leftover is not None:
+        small &= sizes[np.maximum(comp, 0)] < params.max_tiled_leftover
     if not small.any():
         return comp
     tiled = _split_bad_seeds(np.where(small, comp, -1).astype(np.int32), st, params)

@@ -13,7 +13,6 @@ from recognition.fitting import MIN_GRAZING, ray_residuals
 
 from .grid import _adjacency, _border_pairs, _groups, _is_planar_counts, _rms, _State, _subsample, _unique_pairs
 from .quick_fits import (
-    _PLANE_PAIR_TOL,
     _group_grams,
     _group_sums,
     _is_plane_pair,
@@ -180,7 +179,8 @@ def _merge(labels: np.ndarray, st: _State, params: SegmentationParams, jump_h, j
         curved = []  # (index in todo) of the unions fitted by a quadric, in one batch
         flat_pairs = []  # (index in pairs, larger, smaller) of the unions fitted by a plane, in one batch
         for i, (a, b) in enumerate(pairs):
-            if params.class_min_pixels and _class_boundary(counts[a], counts[b], params.class_min_pixels):
+            if params.class_min_pixels is not None and \
+                    _class_boundary(counts[a], counts[b], params.class_min_pixels):
                 continue
             if subs[a].size < subs[b].size:
                 a, b = b, a
@@ -211,7 +211,7 @@ def _merge(labels: np.ndarray, st: _State, params: SegmentationParams, jump_h, j
                     out[todo[j]] = _rms(z)
             for j, p, z in zip(retry, Pq[len(curved):], zq[len(curved):], strict=True):
                 if _rms(z) <= thr and _rms(z[n_large[j]:]) <= 1.5 * thr and \
-                        not _is_plane_pair(p, st.X[unions[j]], _PLANE_PAIR_TOL):
+                        not _is_plane_pair(p, st.X[unions[j]], params.plane_pair_tol):
                     out[todo[j]] = _rms(z)
         return out
 
@@ -368,7 +368,7 @@ def _attach_isolated(labels: np.ndarray, st: _State, params: SegmentationParams,
 
 
 def _absorb_fragments(labels: np.ndarray, st: _State, params: SegmentationParams, jump_h: np.ndarray,
-                      jump_v: np.ndarray, rounds: int = 3) -> np.ndarray:
+                      jump_v: np.ndarray) -> np.ndarray:
     """Merge fragments (fewer than ``min_region_pixels``) into the bordering patch whose surface fits them best.
 
     A fragment joins a larger patch it touches without a jump when the RMS range residual of its pixels to
@@ -376,9 +376,10 @@ def _absorb_fragments(labels: np.ndarray, st: _State, params: SegmentationParams
     that fit). Fragments that fit no neighbour (a small object, a transition band between two surfaces)
     stay as they are. Hoover's metric counts any fragment wholly inside a truth region as an
     over-segmentation of it, so the pieces of one surface cut out by misclassified curvature must go back.
+    At most ``absorb_rounds`` rounds.
     """
     min_pixels, max_rms = params.min_region_pixels, params.absorb_k
-    for _ in range(rounds):
+    for _ in range(params.absorb_rounds):
         groups = _groups(labels)
         if len(groups) < 2:
             return labels

@@ -21,10 +21,11 @@ def _peel_weak(labels: np.ndarray, params: SegmentationParams, jump_h: np.ndarra
     pixels cut off by jumps from every other patch (a small object on its own) keep their border; small
     patches touching another patch are peeled too (a fragment of two or four pixels vanishes).
 
-    A patch of ``min_region_pixels`` or more that the peel would thin by ``_THIN_PEEL_FRACTION`` or more, most of
-    whose weak pixels close a 2 x 2 block of it, is a strip a few pixels wide along a steep diagonal (a thin
-    pipe) with a staircase border: there such a pixel is the end of a row, not a corner or a spur, and stays
-    (the factory scanner's diagonal pipes lost a fifth of their pixels and missed the 0.8 overlap).
+    A patch of ``min_region_pixels`` or more that the peel would thin by ``thin_peel_fraction`` or more, most
+    (``stair_fraction``) of whose weak pixels close a 2 x 2 block of it, is a strip a few pixels wide along a
+    steep diagonal (a thin pipe) with a staircase border: there such a pixel is the end of a row, not a corner
+    or a spur, and stays (the factory scanner's diagonal pipes lost a fifth of their pixels and missed the 0.8
+    overlap).
     """
     min_pixels = params.min_region_pixels
     pad = np.pad(labels, 1, constant_values=-1)
@@ -45,14 +46,7 @@ def _peel_weak(labels: np.ndarray, params: SegmentationParams, jump_h: np.ndarra
     row_end = (same == 2) & ((up & left & same_as(-1, -1)) | (up & right & same_as(-1, 1))
                              | (down & left & same_as(1, -1)) | (down & right & same_as(1, 1)))
     n_weak = np.bincount(labels[weak], minlength=sizes.size)
-    thin = (large & (n_weak >= _THIN_PEEL_FRACTION * sizes)
-            & (np.bincount(labels[weak & row_end], minlength=sizes.size) >= _STAIR_FRACTION * n_weak))
+    thin = (large & (n_weak >= params.thin_peel_fraction * sizes)
+            & (np.bincount(labels[weak & row_end], minlength=sizes.size) >= params.stair_fraction * n_weak))
     return np.where(weak & ~(thin[lab] & row_end), -1, labels).astype(np.int32)
 
-
-# a patch is a thin strip when the peel would remove this share of its pixels or more, and at least
-# _STAIR_FRACTION of those close a 2 x 2 block (a staircase; a ragged noisy border has spurs and single pixels
-# too, and keeping its corners cost the Kinect-like frames). Chosen on the calibration suite: correct detection
-# 0.811 -> 0.814 (0.816 without the staircase share, but 0.800 -> 0.792 on the default suite)
-_THIN_PEEL_FRACTION = 0.1
-_STAIR_FRACTION = 0.8

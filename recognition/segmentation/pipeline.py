@@ -8,6 +8,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from recognition.tuning import AUTO
+
 from .curvature import _curvature_step, classify_hk, curvature_images
 from .edges import _edge_image, _image_grid
 from .final_fits import _finalise
@@ -61,7 +63,7 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
     full, declared, scale = image
     d = params.step(shape)
     coarse = d > 1  # VGA-class images (>= 400 rows, unless `decimation` says otherwise)
-    if params.split_seeds is None:
+    if params.split_seeds == AUTO:
         params = replace(params, split_seeds=coarse)
     # steps 2-5 run on the segmentation grid: every d-th pixel of a coarse image (pixel counts of the params
     # scaled by 1 / d²), the image itself otherwise

@@ -239,7 +239,7 @@ def _fit_groups(groups: dict[int, np.ndarray], st: _State, params: SegmentationP
         Pq, zq = _quick_fits([subs[k] for k in retry], np.zeros(len(retry), bool), st)
         for j, k in enumerate(retry):
             # ... but not two faces across a blurred crease, which a plane pair fits exactly
-            if _rms(zq[j]) < 0.5 * rms[k] and not _is_plane_pair(Pq[j], st.X[subs[k]], _PLANE_PAIR_TOL):
+            if _rms(zq[j]) < 0.5 * rms[k] and not _is_plane_pair(Pq[j], st.X[subs[k]], params.plane_pair_tol):
                 planar[k], Pg[k], zs[k] = False, Pq[j], zq[j]
     if trim is not None:
         redo = []
@@ -287,11 +287,6 @@ def _ray_z(p: np.ndarray, x: np.ndarray, U: np.ndarray, S: np.ndarray, f: np.nda
 
 
 # -------------------------------------------------------------------------------------- plane pairs
-
-
-# relative tolerance of the plane-pair test (rank and constant of the quadric); 0.05 and 0.15 gave the same
-# segmentations on the default suite
-_PLANE_PAIR_TOL = 0.05
 
 
 def _is_plane_pair(p: np.ndarray, x: np.ndarray, tol: float) -> bool:

@@ -12,14 +12,14 @@ from .types import SegmentationParams
 
 
 def _reassign(labels: np.ndarray, st: _State, params: SegmentationParams, links, jump_h: np.ndarray,
-              jump_v: np.ndarray, refit_pixels: int = 4000) -> np.ndarray:
+              jump_v: np.ndarray) -> np.ndarray:
     """Move border pixels to the neighbouring patch whose surface fits them clearly better (returns new labels).
 
     Tiles, blocks of the coarse grid and merges leave patches whose border runs a few pixels past the
     surface's own (a tile straddling a pipe and its reducer, a pipe strip that took a row of its elbow). A
     pixel linked (no jump) to another patch moves there when its range residual to that patch's surface is
     within ``2 grow_k`` sigma and ``reassign_margin`` sigma smaller than to its own; the patches that changed are
-    refitted (those of more than ``refit_pixels`` pixels hardly move and are not) and the pixels next to the
+    refitted (those of more than ``reassign_refit_pixels`` pixels hardly move and are not) and the pixels next to the
     moved ones tested again, for at most ``reassign_rounds`` rounds. Pixels near a crease fit both faces within the
     margin and stay. ``links``: :func:`_neighbour_links` of the grid.
 
@@ -50,7 +50,7 @@ def _reassign(labels: np.ndarray, st: _State, params: SegmentationParams, links,
     border[:-1, :] |= diff_v
     border[1:, :] |= diff_v
     cand = np.flatnonzero(border)
-    small = {k: v for k, v in groups.items() if v.size <= refit_pixels}
+    small = {k: v for k, v in groups.items() if v.size <= params.reassign_refit_pixels}
     fragment = np.zeros(n, bool)
     fragment[[k for k, v in groups.items() if v.size < params.min_patch_pixels]] = True
     for _ in range(rounds):

@@ -17,7 +17,7 @@ def _seeds(hk: np.ndarray, edges: np.ndarray, wide: np.ndarray, st: _State, para
     ``split_seeds``, into tiles) where one surface does not fit them."""
     seeds = _seed_labels(hk, edges, params)
     seeds = _split_at_creases(seeds, wide, st, params)
-    if params.split_seeds:
+    if params.split_seeds is True:  # ("auto" is resolved by segment())
         seeds = _split_bad_seeds(seeds, st, params)
     return seeds
 

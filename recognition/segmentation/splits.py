@@ -12,7 +12,7 @@ from scenes.geometry import perpendicular_basis
 
 from .grid import _groups, _rms, _State, _subsample
 from .merging import _absorb_fragments
-from .quick_fits import _PLANE_PAIR_TOL, _is_plane_pair, _plane_pair_sides, _quick_fits
+from .quick_fits import _is_plane_pair, _plane_pair_sides, _quick_fits
 from .types import SegmentationParams
 
 
@@ -48,7 +48,7 @@ def _split_plane_pairs(labels: np.ndarray, st: _State, params: SegmentationParam
     nxt = int(labels.max()) + 1
     for q, z, j in zip(Pq, zq, bad, strict=True):
         idx = groups[labs[j]]
-        if _is_plane_pair(q, st.X[subs[j]], _PLANE_PAIR_TOL):
+        if _is_plane_pair(q, st.X[subs[j]], params.plane_pair_tol):
             side = _plane_pair_sides(q, st.X[idx])
             pieces = [idx[side == 0], idx[side == 1]]
             if min(h.size for h in pieces) < params.min_patch_pixels:
@@ -69,15 +69,16 @@ def _split_plane_pairs(labels: np.ndarray, st: _State, params: SegmentationParam
     return out
 
 
-def _k_planes(x: np.ndarray, u: np.ndarray, s: np.ndarray, k: int, iterations: int = 10,
-              inlier_z: float = 3.0, trials: int = 100) -> np.ndarray | None:
-    """Part (0 .. k-1) of each point ``x`` (N, 3) by k planes fitted alternately (k-planes): each point goes
-    to the plane nearest along its ray ``u`` (in its sigmas ``s``), each plane is refitted to its points.
+def _k_planes(x: np.ndarray, u: np.ndarray, s: np.ndarray, k: int, params: SegmentationParams) -> np.ndarray | None:
+    """Part (0 .. k-1) of each point ``x`` (N, 3) by k planes fitted alternately (k-planes, at most
+    ``kplanes_iterations`` times): each point goes to the plane nearest along its ray ``u`` (in its sigmas
+    ``s``), each plane is refitted to its points.
 
-    Started by sequential RANSAC: the plane through three of the points (``trials`` triples, a fixed seed:
-    deterministic) with most points within ``inlier_z`` sigmas, refitted on them, then the next one among
-    the points left. A start from the pixels' normals (k mutually distant ones) put a far box's narrow top
-    and its front in one part: its normals are too noisy there. None when a part empties."""
+    Started by sequential RANSAC: the plane through three of the points (``kplanes_trials`` triples, a fixed
+    seed: deterministic) with most points within ``kplanes_inlier_k`` sigmas, refitted on them, then the next
+    one among the points left. A start from the pixels' normals (k mutually distant ones) put a far box's
+    narrow top and its front in one part: its normals are too noisy there. None when a part empties."""
+    iterations, inlier_z, trials = params.kplanes_iterations, params.kplanes_inlier_k, params.kplanes_trials
     n_pts = len(x)
     if n_pts < 3 * k:
         return None
@@ -132,7 +133,7 @@ def _k_planes(x: np.ndarray, u: np.ndarray, s: np.ndarray, k: int, iterations: i
     return part
 
 
-def _broad(x: np.ndarray, s: np.ndarray, ratio: float = 10.0) -> bool:
+def _broad(x: np.ndarray, s: np.ndarray, ratio: float) -> bool:
     """Whether points ``x`` (N, 3) spread across their plane (the narrower in-plane standard deviation) over
     ``ratio`` times their median sigma ``s``: a face, not a strip of a pipe that the noise lets pass for flat."""
     c = x.mean(axis=0)
@@ -140,31 +141,29 @@ def _broad(x: np.ndarray, s: np.ndarray, ratio: float = 10.0) -> bool:
     return bool(np.sqrt(max(w[1], 0.0)) >= ratio * float(np.median(s)))
 
 
-def _trimmed_rms(z: np.ndarray, keep: float = 0.9) -> float:
+def _trimmed_rms(z: np.ndarray, keep: float) -> float:
     """RMS of the smallest ``keep`` share of ``z`` (the pixels mixed at a crease are the rest)."""
     return _rms(np.sort(z)[: max(int(keep * z.size), 1)])
 
 
-_FACE_COS = np.cos(np.radians(30.0))  # faces cut apart by _faces meet at 30 deg or more
-
-
 def _faces(idx: np.ndarray, st: _State, params: SegmentationParams) -> list[np.ndarray]:
     """The two or three faces (:func:`_k_planes`) of the patch of pixels ``idx`` that each fit a plane within
-    ``1.5 merge_k`` (but for a tenth of their pixels, mixed at the creases: a far box's faces are a few pixels
-    wide), are broad against the noise (:func:`_broad`) and meet at 30 deg or more (not one face with a few
-    stray pixels); [] when there are none. Of three parts, one parallel to a face, at 30 deg or more from
-    the other and of at most half that face's pixels is the face's layer (returns mixed at its edge, or a
-    piece of the surface behind it) and goes with it, unchecked. (Larger parallel parts were facets of a
-    near pipe on the ``calibration`` suite.)"""
+    ``1.5 merge_k`` (but for the ``1 - face_keep`` of their pixels mixed at the creases: a far box's faces are a
+    few pixels wide), are broad against the noise (:func:`_broad`, ``face_broad_ratio``) and meet at
+    ``face_min_angle_deg`` or more (not one face with a few stray pixels); [] when there are none. Of three
+    parts, one parallel to a face, at that angle or more from the other and of at most half that face's pixels
+    is the face's layer (returns mixed at its edge, or a piece of the surface behind it) and goes with it,
+    unchecked. (Larger parallel parts were facets of a near pipe on the first phase's ``calibration`` suite.)"""
+    face_cos = np.cos(np.radians(params.face_min_angle_deg))
     for k in (2, 3):
-        part = _k_planes(st.X[idx], st.U[idx], st.S[idx], k)
+        part = _k_planes(st.X[idx], st.U[idx], st.S[idx], k, params)
         if part is None:
             continue
         faces = [idx[part == j] for j in range(k)]
         Pf, zf = _quick_fits([_subsample(f, params.max_fit_points) for f in faces], np.ones(k, bool), st)
         cos = np.abs(Pf[:, 6:9] @ Pf[:, 6:9].T)
         pairs = [(i, j) for i in range(k) for j in range(i + 1, k)]
-        parallel = [(i, j) for i, j in pairs if cos[i, j] > _FACE_COS]
+        parallel = [(i, j) for i, j in pairs if cos[i, j] > face_cos]
         layer = host = None
         if k == 3 and len(parallel) == 1:
             host, layer = sorted(parallel[0], key=lambda j: -faces[j].size)
@@ -172,10 +171,10 @@ def _faces(idx: np.ndarray, st: _State, params: SegmentationParams) -> list[np.n
                 host = layer = None
         keep = [j for j in range(k) if j != layer]
         if min(faces[j].size for j in keep) < params.min_patch_pixels or \
-                not all(_broad(st.X[faces[j]], st.S[faces[j]]) for j in keep):
+                not all(_broad(st.X[faces[j]], st.S[faces[j]], params.face_broad_ratio) for j in keep):
             continue
-        if all(cos[i, j] <= _FACE_COS for i, j in pairs if i in keep and j in keep) and \
-                all(_trimmed_rms(zf[j]) <= 1.5 * params.merge_k for j in keep):
+        if all(cos[i, j] <= face_cos for i, j in pairs if i in keep and j in keep) and \
+                all(_trimmed_rms(zf[j], params.face_keep) <= 1.5 * params.merge_k for j in keep):
             if layer is not None:
                 faces[host] = np.sort(np.concatenate([faces[host], faces[layer]]))
             return [faces[j] for j in keep]
@@ -185,19 +184,18 @@ def _faces(idx: np.ndarray, st: _State, params: SegmentationParams) -> list[np.n
 # ----------------------------------------------------------------------------------- along the axis
 
 
-def _split_along_axis(labels: np.ndarray, st: _State, params: SegmentationParams, normals: np.ndarray,
-                      passes: int = 3) -> np.ndarray:
+def _split_along_axis(labels: np.ndarray, st: _State, params: SegmentationParams, normals: np.ndarray) -> np.ndarray:
     """Cut curved patches along their axis where the radius changes.
 
     Under strong noise a pipe, its reducer and the next pipe (or a pipe and its elbow) join smoothly enough
     for one quadric to fit their union within the noise, and the curvature classes cannot tell a 5 deg cone
     from a cylinder. Along the axis of a cylinder fitted to the patch, the median distance of its points to
     the axis (per slice half a radius long) is constant over a pipe, linear over a reducer, and turns at a
-    join: the patch is cut there (:func:`_axial_pieces`). Applied ``passes`` times, so that a piece holding
-    a reducer and a pipe is cut again.
+    join: the patch is cut there (:func:`_axial_pieces`). Applied ``axis_split_passes`` times, so that a piece
+    holding a reducer and a pipe is cut again.
     """
     out = labels
-    for _ in range(passes):
+    for _ in range(params.axis_split_passes):
         nxt = int(out.max()) + 1
         changed = False
         big = [idx for idx in _groups(out).values() if idx.size >= params.axis_split_pixels]
@@ -209,7 +207,7 @@ def _split_along_axis(labels: np.ndarray, st: _State, params: SegmentationParams
         for k, z in zip(curved, zq, strict=True):
             idx = big[k]
             # one quadric fits the patch within noise: a sphere or a dome is not cut into pipes
-            side = _axial_pieces(st.X[idx], st.S[idx], normals[idx], params.min_region_pixels,
+            side = _axial_pieces(st.X[idx], st.S[idx], normals[idx], params.min_region_pixels, params,
                                  several_axes=not _rms(z) <= params.merge_k)
             if side is None:
                 continue
@@ -223,24 +221,26 @@ def _split_along_axis(labels: np.ndarray, st: _State, params: SegmentationParams
     return out
 
 
-def _axial_pieces(x: np.ndarray, s: np.ndarray, n: np.ndarray, min_pixels: int, fit_points: int = 2000,
-                  flat_fraction: float = 0.03, min_bins: int = 3, several_axes: bool = True) -> np.ndarray | None:
+def _axial_pieces(x: np.ndarray, s: np.ndarray, n: np.ndarray, min_pixels: int, params: SegmentationParams,
+                  several_axes: bool = True) -> np.ndarray | None:
     """Two pieces (0 and 1 per point) of a curved patch along its axis, or None when it is one surface.
 
     The axis is the direction the normals turn about (shared by a pipe and its reducer); the patch is cut
-    into slices half a radius long along it (longer on a far, thin pipe, so that they hold ``_SLICE_POINTS``
+    into slices half a radius long along it (longer on a far, thin pipe, so that they hold ``axial_slice_points``
     points on average: its slices had 5-10, and none was used). A
     cylinder's slices keep one median distance to the axis, a cone's change it linearly (so does a cylinder's
     under a slightly tilted axis), so the profile of one surface is a line, within
-    ``max(3 sigma of the median, flat_fraction * radius)`` per slice. A profile that is not is cut where two
+    ``max(3 sigma of the median, axial_flat_fraction * radius)`` per slice. A profile that is not is cut where two
     lines, fitted on either side, explain it best, or, when no two do, at the first cut of the three lines
     that do (a reducer between two pipes: on the default suite's Kinect-like frames, correct detection 0.554
-    -> 0.594); each side needs ``min_bins`` slices and at least ``min_pixels`` points and a tenth of the
+    -> 0.594); each side needs ``axial_min_bins`` slices and at least ``min_pixels`` points and a tenth of the
     patch. A patch whose profile about the axis of a cylinder fitted
     to it is one line is not cut (a pipe whose normals gave a slightly tilted axis).
 
-    ``x`` points (N, 3), ``s`` their range sigmas (N,), ``n`` their unit normals (N, 3) (NaN where undefined).
+    ``x`` points (N, 3), ``s`` their range sigmas (N,), ``n`` their unit normals (N, 3) (NaN where undefined);
+    the section is fitted on ``axial_fit_points`` of them.
     """
+    fit_points = params.axial_fit_points
     ok = np.isfinite(n).all(axis=1)
     if ok.sum() < 20:
         return None
@@ -249,7 +249,7 @@ def _axial_pieces(x: np.ndarray, s: np.ndarray, n: np.ndarray, min_pixels: int, 
         return None  # the normals barely turn (a plane)
     if w[0] > 0.05 * w.sum():
         # the normals do not turn about one axis: a doubly curved patch, or two pipes and their elbow
-        return _dominant_cylinder(x, s, n, ok, min_pixels, fit_points) if several_axes else None
+        return _dominant_cylinder(x, s, n, ok, min_pixels, params) if several_axes else None
     # the axis: the direction on which the normals' projection is most nearly constant (zero on a cylinder,
     # the sine of the half-angle on a cone; the normals' scatter itself tilts on a partly seen cone)
     axis = np.linalg.eigh(np.cov(n[ok].T))[1][:, 0]
@@ -261,29 +261,32 @@ def _axial_pieces(x: np.ndarray, s: np.ndarray, n: np.ndarray, min_pixels: int, 
     if not r2 > 0:
         return None
     centre, radius = sol[0] * e1 + sol[1] * e2, float(np.sqrt(r2))
-    side = _axial_cut(x, s, centre, axis, radius, min_bins, flat_fraction)
+    side = _axial_cut(x, s, centre, axis, radius, params)
     if side is None or min(np.sum(side == 0), np.sum(side == 1)) < max(min_pixels, len(x) // 10):
         return None
     # the normals' axis of a noisy pipe may be a degree off, which bends its profile: a pipe whose fitted
     # cylinder's profile is one line is one surface
     cyl = fit_cylinder(x[sub], s[sub], init=(centre, axis, radius), max_points=600, huber=1.5, max_iter=10)
-    if cyl.ok and _axial_cut(x, s, cyl.point, cyl.axis, cyl.radius, min_bins, flat_fraction) is None:
+    if cyl.ok and _axial_cut(x, s, cyl.point, cyl.axis, cyl.radius, params) is None:
         return None
     return side
 
 
 def _dominant_cylinder(x: np.ndarray, s: np.ndarray, n: np.ndarray, ok: np.ndarray, min_pixels: int,
-                       fit_points: int, keep: float = 0.6, rounds: int = 4, k: float = 3.0) -> np.ndarray | None:
+                       params: SegmentationParams) -> np.ndarray | None:
     """Two pieces (0 per point on the patch's dominant cylinder, 1 elsewhere) of a patch whose normals turn
     about more than one axis, or None.
 
     Two pipes joined by an elbow, merged under strong noise: the normals of each pipe lie on a great circle
-    about its axis. The axis of the most populous circle comes from the normals' scatter, trimmed ``rounds``
-    times to the ``keep`` fraction nearest the circle; the pipe's section across it from the points and
-    normals (trimmed likewise), then a cylinder fitted from there, which takes the points within ``k`` sigma
-    of it. None unless that axis holds a clean circle, the fit succeeds and both pieces hold at least
-    ``min_pixels`` points and a tenth of the patch. ``ok``: the points whose normal is defined.
+    about its axis. The axis of the most populous circle comes from the normals' scatter, trimmed
+    ``elbow_cut_rounds`` times to the ``elbow_cut_keep`` fraction nearest the circle; the pipe's section across
+    it from the points and normals (``axial_fit_points`` of them, trimmed likewise), then a cylinder fitted from
+    there, which takes the points within ``elbow_cut_k`` sigma of it. None unless that axis holds a clean
+    circle, the fit succeeds and both pieces hold at least ``min_pixels`` points and a tenth of the patch.
+    ``ok``: the points whose normal is defined.
     """
+    fit_points, keep = params.axial_fit_points, params.elbow_cut_keep
+    rounds, k = params.elbow_cut_rounds, params.elbow_cut_k
     nn = n[ok]
     near = np.ones(len(nn), bool)
     for _ in range(rounds):
@@ -326,17 +329,16 @@ def _dominant_cylinder(x: np.ndarray, s: np.ndarray, n: np.ndarray, ok: np.ndarr
     return side
 
 
-_SLICE_POINTS = 25  # points per slice of an axial profile on average, at least (a slice counts with 20)
-
-
-def _axial_cut(x: np.ndarray, s: np.ndarray, point: np.ndarray, axis: np.ndarray, radius: float, min_bins: int,
-               flat_fraction: float) -> np.ndarray | None:
+def _axial_cut(x: np.ndarray, s: np.ndarray, point: np.ndarray, axis: np.ndarray, radius: float,
+               params: SegmentationParams) -> np.ndarray | None:
     """The cut of :func:`_axial_pieces` about the axis through ``point``: side (0 or 1) per point, or None."""
+    min_bins, flat_fraction = params.axial_min_bins, params.axial_flat_fraction
     q = x - point
     t = q @ axis
     rho = np.linalg.norm(q - np.outer(t, axis), axis=1)
-    # slices half a radius long, or longer on a far thin pipe: _SLICE_POINTS points each on average
-    step = max(radius / 2.0, (t.max() - t.min()) * _SLICE_POINTS / len(x))
+    # slices half a radius long, or longer on a far thin pipe: axial_slice_points points each on average (a
+    # slice counts with 20)
+    step = max(radius / 2.0, (t.max() - t.min()) * params.axial_slice_points / len(x))
     b = np.floor((t - t.min()) / step).astype(np.int64)
     nb = int(b.max()) + 1
     cnt = np.bincount(b, minlength=nb)

@@ -5,10 +5,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from enum import IntEnum
+from typing import Literal
 
 import numpy as np
 
 from recognition.fitting import PlaneFit, QuadricSurfaceFit
+from recognition.tuning import AUTO, tuned
 
 __all__ = ["SurfaceType", "EdgeType", "SegmentationParams", "Patch", "Segmentation", "CurvatureImages"]
 
@@ -50,15 +52,16 @@ class SegmentationParams:
         Crease when the angle between neighbouring normals exceeds ``crease_k`` times its propagated sigma...
     crease_min_angle : float, radians
         ...and this angle (also the floor of the wide-baseline test).
-    crease_baseline : int or None
+    crease_baseline : int, "auto" or None
         Half baseline ``k`` (pixels of the segmentation grid) of the wide-baseline crease test
         (:func:`_wide_creases`) and of the crease split of badly fitted seeds (:func:`_split_at_creases`);
-        None: ``window``; 0 (default) disables both. The windowed normal fits spread a crease over about
+        "auto": ``window``; None (default): both off. The windowed normal fits spread a crease over about
         ``window`` pixels, so on noisy (real) data no pair of neighbours crosses the neighbour test. Measured
-        with None on /tmp/segw's 10 scans per group: Kinect-like 0.21 -> 0.43, mock-up 0.76 (same), factory
-        scanner 0.63 -> 0.60; on the real scans it separates the box faces, the mug from the table and the
-        tunnel floor from its wall, but the classifier then labels the box faces CYL (their plane residual is
-        ~1.6x the declared sigma), so it stays off until the classifier's noise handles real data.
+        with "auto" on 10 scans per group of the first phase's simulated scenes (commit 24ce129; correct
+        detection): Kinect-like 0.21 -> 0.43, mock-up 0.76 (same), factory scanner 0.63 -> 0.60; on the real
+        scans it separates the box faces, the mug from the table and the tunnel floor from its wall, but the
+        classifier then labels the box faces CYL (their plane residual is ~1.6x the declared sigma), so it
+        stays off until the classifier's noise handles real data.
     crease_wide_k : float
         Its threshold in robust scales (MAD) of the statistic over the image (real noise is spatially
         correlated: the propagated sigma of independent pixels under-states it).
@@ -66,8 +69,8 @@ class SegmentationParams:
         Floor of that threshold.
     sigma_floor_m : float, metres
         Floor applied to the input sigma (quantisation level; keeps noise-free images usable).
-    seed_erosion : int or None
-        Erosion (pixels) that a class component must survive to seed a patch (None: ``window // 2``).
+    seed_erosion : int or "auto"
+        Erosion (pixels) that a class component must survive to seed a patch ("auto": ``window // 2``).
     min_seed_pixels : int
         Fewest pixels left after erosion for a seed.
     grow_k : float
@@ -92,26 +95,26 @@ class SegmentationParams:
         Points used per fit while growing (a deterministic stride subsample).
     merge_fit_points : int
         Points per patch in the fits that test a merge.
-    max_tiled_leftover : int
+    max_tiled_leftover : int or None
         Leftover pieces (no seed: thin pipes, every window of which crosses a jump) below this size (pixels
-        of the segmentation grid) that one surface does not fit are cut into tiles like bad seeds. A whole
-        pipe run (pipe, reducer, pipe, elbow) is otherwise one patch: correct detection with the factory
-        scanner 0.59 -> 0.66 on the default suite.
-    class_min_pixels : int
+        of the segmentation grid) that one surface does not fit are cut into tiles like bad seeds; None (default):
+        whatever their size. A whole pipe run (pipe, reducer, pipe, elbow) is otherwise one patch: correct
+        detection with the factory scanner 0.59 -> 0.66 on the first phase's default suite.
+    class_min_pixels : int or None
         Classified pixels a patch needs for its dominant class to veto a merge across a cylindrical /
-        doubly-curved class boundary (pixels of the segmentation grid); 0 (default) disables the veto: on
+        doubly-curved class boundary (pixels of the segmentation grid); None (default): no veto. On
         the simulated suites tangent joins were lost before merging (one seed or leftover piece spanning
         both surfaces), and the veto cost two regions elsewhere.
     connectivity : int
         4 or 8: pixel connectivity of class components.
-    decimation : int or None
+    decimation : int or "auto"
         Grid step of curvature, seeding, growing and merging (labels are refined at full resolution);
-        None: 2 for images of at least 400 rows, else 1 (:meth:`step`).
+        "auto": 2 for images of at least 400 rows, else 1 (:meth:`step`).
     final_fit_points : int
         Points (deterministic stride subsample) of the final plane / quadric fit of each patch.
-    split_seeds : bool or None
+    split_seeds : bool or "auto"
         Cut seeds that one surface does not fit into tiles (:func:`_split_bad_seeds`); merging reassembles
-        the tiles that share a surface. None (default): on for decimated grids (VGA-class images). There it
+        the tiles that share a surface. "auto" (default): on for decimated grids (VGA-class images). There it
         recovers pipe runs and faces that one class component spans (a tangent elbow, a blurred crease:
         correct detection on the default suite 0.81 -> 0.92 mock-up, 0.57 -> 0.59 factory scanner, 0.18 ->
         0.23 Kinect-like). Off on full-resolution grids: on the real pyRANSAC-3D box scans (structured light,
@@ -139,7 +142,7 @@ class SegmentationParams:
     axis_split_pixels : int or None
         Curved patches of at least this many pixels are cut along their axis where the radius changes (a pipe
         merged with its reducer or elbow, see :func:`_split_along_axis`); None: never. 400 (was 1500), with
-        slices of ``_SLICE_POINTS`` points on far pipes, on the ``calibration`` suite: pooled correct
+        slices of ``axial_slice_points`` points on far pipes, on the first phase's ``calibration`` suite: pooled correct
         detection 0.730 -> 0.739 (factory scanner 0.715 -> 0.732), accuracy 0.929 -> 0.930; on the same suite
         with perturbation seeds 10-14 (60 frames), accuracy 0.948 -> 0.951, factory-scanner correct detection
         0.763 -> 0.774 (mean over frames).
@@ -150,51 +153,144 @@ class SegmentationParams:
     reassign_margin : float
         A border pixel moves to a neighbouring patch only when its range residual to that patch's surface is
         smaller, by this many sigma, than to its own (and within ``2 grow_k``).
+    max_variance_ratio : float
+        A masked derivative window whose second-derivative variance exceeds this multiple of the full window's
+        is too ill-conditioned: its derivatives are NaN (:func:`quadratic_derivatives`).
+    noise_block : int
+        Side of the blocks of :func:`noise_scale`, in samples (every third pixel: ``3 noise_block`` pixels).
+    absorb_rounds : int
+        Rounds of :func:`_absorb_fragments` (fragments into the bordering patch that fits them).
+    plane_pair_tol : float
+        Relative tolerance of the plane-pair test (:func:`_is_plane_pair`: rank and constant of the quadric).
+    kplanes_iterations, kplanes_inlier_k, kplanes_trials : int, float (sigma), int
+        The face cut's k-planes (:func:`_k_planes`): alternations at most; inlier distance of its sequential
+        RANSAC start, along the ray in sigmas; RANSAC triples per plane.
+    face_broad_ratio : float
+        A face of the face cut must spread across its plane over this many median sigmas (:func:`_broad`).
+    face_keep : float
+        Share of a face's pixels whose RMS must be within ``1.5 merge_k`` (the rest are mixed at the creases).
+    face_min_angle_deg : float, degrees
+        Faces cut apart by :func:`_faces` meet at this angle or more.
+    axis_split_passes : int
+        Passes of the axial cut (:func:`_split_along_axis`: a piece holding a reducer and a pipe is cut again).
+    axial_fit_points, axial_flat_fraction, axial_min_bins, axial_slice_points : int, float, int, int
+        The axial cut's profile (:func:`_axial_pieces`): points of its section fit; a profile is one line within
+        ``max(3 sigma, axial_flat_fraction * radius)`` per slice; slices each side of a cut at least; points
+        per slice on average (slices are longer than half a radius on a far, thin pipe).
+    elbow_cut_keep, elbow_cut_rounds, elbow_cut_k : float, int, float (sigma)
+        The cut of two pipes merged with their elbow (:func:`_dominant_cylinder`): the fraction of normals (and
+        of section points) kept nearest the dominant pipe, over this many trimming rounds; the pipe takes the
+        points within ``elbow_cut_k`` sigma of its fitted cylinder.
+    reassign_refit_pixels : int
+        Patches of more pixels are not refitted between rounds of :func:`_reassign` (they hardly move).
+    thin_peel_fraction, stair_fraction : float
+        :func:`_peel_weak` keeps the row ends of a patch (of ``min_region_pixels`` or more) that the peel would
+        thin by ``thin_peel_fraction`` or more when at least ``stair_fraction`` of its weak pixels close a 2 x 2
+        block of it (a staircase border; a ragged noisy border has spurs and single pixels too, and keeping
+        its corners cost the Kinect-like frames).
+
+    Every field's unit and where its value was chosen: :func:`recognition.tuning.tuned` (``docs/tuning.md``).
     """
 
-    window: int = 7
-    zero_k: float = 3.0
-    jump_k: float = 4.0
-    jump_tan: float = 5.0
-    crease_k: float = 4.0
-    crease_min_angle: float = float(np.deg2rad(12.0))
-    crease_baseline: int | None = 0
-    crease_wide_k: float = 3.0
-    crease_wide_min_angle: float = float(np.deg2rad(30.0))
-    sigma_floor_m: float = 1e-5
-    seed_erosion: int | None = None
-    min_seed_pixels: int = 8
-    grow_k: float = 3.0
-    grow_rounds: int = 2
-    max_grow_iterations: int = 100
-    merge_k: float = 2.0
-    min_patch_pixels: int = 50
-    noisy_k: float = 3.0
-    min_leftover_pixels: int = 3
-    max_fit_points: int = 1500
-    merge_fit_points: int = 400
-    class_min_pixels: int = 0
-    max_tiled_leftover: int = 1_000_000
-    connectivity: int = 4
-    calibrate_noise: bool = True
-    min_region_pixels: int = 200
-    decimation: int | None = None
-    split_seeds: bool | None = None
-    seed_tile: int = 12
-    split_k: float = 4.0
-    final_fit_points: int = 5000
-    absorb_k: float = 4.0
-    max_noise_scale: float = 10.0
-    curved_planar_merge: bool = True
-    axis_split_pixels: int | None = 400
-    reassign_rounds: int = 16
-    reassign_margin: float = 1.0
+    window: int = tuned(7, unit="px", chosen="not tuned: the first segmenter's window (b65f74f)")
+    zero_k: float = tuned(3.0, unit="sigma", chosen="not tuned: a 3-sigma test, set in b65f74f")
+    jump_k: float = tuned(4.0, unit="sigma", chosen="not tuned: set in b65f74f")
+    jump_tan: float = tuned(5.0, unit="tan", chosen="not tuned: set in b65f74f (5.0 ~ 79 deg incidence)")
+    crease_k: float = tuned(4.0, unit="sigma", chosen="not tuned: set in b65f74f")
+    crease_min_angle: float = tuned(float(np.deg2rad(12.0)), unit="rad", chosen="not tuned: set in b65f74f")
+    crease_baseline: int | Literal["auto"] | None = tuned(
+        None, unit="px (grid)", chosen="off: on 10 simulated scans per group of the first phase (24ce129) it "
+        "doubled Kinect-like correct detection (0.21 -> 0.43) but cost the factory scanner 0.03, and on real box "
+        "scans the separated faces fail the classifier's fit test")
+    crease_wide_k: float = tuned(3.0, unit="MAD", chosen="not tuned: set with the wide-baseline test (24ce129), "
+                                 "which is off")
+    crease_wide_min_angle: float = tuned(float(np.deg2rad(30.0)), unit="rad",
+                                         chosen="not tuned: set with the wide-baseline test (24ce129), which is off")
+    sigma_floor_m: float = tuned(1e-5, unit="m", chosen="not tuned: a quantisation floor (b65f74f)")
+    seed_erosion: int | Literal["auto"] = tuned("auto", unit="px", chosen="not tuned: window // 2 since b65f74f")
+    min_seed_pixels: int = tuned(8, unit="px", chosen="not tuned: set in b65f74f")
+    grow_k: float = tuned(3.0, unit="sigma", chosen="not tuned: set in b65f74f")
+    grow_rounds: int = tuned(2, unit="count", chosen="not tuned: set in b65f74f")
+    max_grow_iterations: int = tuned(100, unit="count", chosen="not tuned: a bound, set in b65f74f")
+    merge_k: float = tuned(2.0, unit="sigma", chosen="not tuned: set in b65f74f")
+    min_patch_pixels: int = tuned(50, unit="px", chosen="not tuned: set in b65f74f")
+    noisy_k: float = tuned(3.0, unit="sigma", chosen="not tuned: a flag only, set in b65f74f")
+    min_leftover_pixels: int = tuned(3, unit="px", chosen="not tuned: set in b65f74f")
+    max_fit_points: int = tuned(1500, unit="points", chosen="not tuned: a speed bound, set in b65f74f")
+    merge_fit_points: int = tuned(400, unit="points", chosen="not tuned: a speed bound, set in 84acd52")
+    class_min_pixels: int | None = tuned(
+        None, unit="px (grid)", chosen="off: on the first phase's simulated suites the veto cost two regions and "
+        "tangent joins were lost before merging anyway (84acd52)")
+    max_tiled_leftover: int | None = tuned(
+        None, unit="px (grid)", chosen="no limit since 217c790 (formerly spelled 1_000_000): tiling every leftover "
+        "took factory-scanner correct detection 0.59 -> 0.66 on the first phase's default (now classic)")
+    connectivity: int = tuned(4, unit="-", chosen="not tuned: 4-connectivity since b65f74f")
+    calibrate_noise: bool = tuned(
+        True, unit="-", chosen="on since 84acd52, whose changes together (with the coarse grid, trimmed refits, "
+        "peeling, fragment merging) took correct detection on 10 simulated scans per group 0.49 -> 0.76 (mock-up), "
+        "0.44 -> 0.63 (factory scanner); its own share not measured")
+    min_region_pixels: int = tuned(200, unit="px",
+                                   chosen="not tuned: the 200-pixel floor of the scored regions (84acd52)")
+    decimation: int | Literal["auto"] = tuned(
+        "auto", unit="px", chosen="not tuned: 2 for images of >= 400 rows since 84acd52 (with the noise calibration: "
+        "the figures of calibrate_noise)")
+    split_seeds: bool | Literal["auto"] = tuned(
+        "auto", unit="-", chosen="on for decimated grids since 217c790, whose changes together (with the Taubin quick "
+        "fits and the plane-pair guard) took correct detection 0.52 -> 0.61 on the first phase's default (now "
+        "classic); off at full resolution for the real box scans")
+    seed_tile: int = tuned(12, unit="px (grid)", chosen="not tuned: set in 84acd52")
+    split_k: float = tuned(4.0, unit="sigma", chosen="not tuned: set in 84acd52")
+    final_fit_points: int = tuned(5000, unit="points", chosen="not tuned: a speed bound, set in 84acd52")
+    absorb_k: float = tuned(4.0, unit="sigma", chosen="not tuned: set in 84acd52")
+    max_noise_scale: float = tuned(10.0, unit="ratio", chosen="not tuned: a bound, set in 84acd52")
+    curved_planar_merge: bool = tuned(
+        True, unit="-", chosen="on since 329aaa5: Kinect-like correct detection 0.38 -> 0.42, select accuracy 0.63 "
+        "-> 0.71 on the first phase's default (now classic)")
+    axis_split_pixels: int | None = tuned(
+        400, unit="px", chosen="calibration (phase 1): pooled correct detection 0.730 -> 0.739 (1500 before; "
+        "062236b)")
+    reassign_rounds: int = tuned(
+        16, unit="count", chosen="set in c398b05 with the reassignment (correct detection 0.705 -> 0.724 on the "
+        "first phase's default, now classic); the count itself not varied")
+    reassign_margin: float = tuned(1.0, unit="sigma", chosen="set in c398b05 with the reassignment; not varied")
+    max_variance_ratio: float = tuned(
+        25.0, unit="ratio", chosen="not tuned: set with the masked derivatives in b65f74f")
+    noise_block: int = tuned(8, unit="samples", chosen="not tuned: set with the noise calibration in 84acd52")
+    absorb_rounds: int = tuned(3, unit="count", chosen="not tuned: set with the fragment merge in 84acd52")
+    plane_pair_tol: float = tuned(
+        0.05, unit="relative", chosen="the first phase's default (now classic): 0.05 and 0.15 gave the same "
+        "segmentations (8f5f095)")
+    kplanes_iterations: int = tuned(10, unit="count", chosen="not tuned: set with the face cut in d264951")
+    kplanes_inlier_k: float = tuned(3.0, unit="sigma", chosen="not tuned: set with the RANSAC start in e9db788")
+    kplanes_trials: int = tuned(100, unit="count", chosen="not tuned: set with the RANSAC start in e9db788")
+    face_broad_ratio: float = tuned(10.0, unit="sigma", chosen="not tuned: set with the face cut in d264951")
+    face_keep: float = tuned(0.9, unit="fraction", chosen="not tuned: set with the face cut in d264951")
+    face_min_angle_deg: float = tuned(30.0, unit="deg", chosen="not tuned: set with the face cut in d264951")
+    axis_split_passes: int = tuned(3, unit="count", chosen="not tuned: set with the axial cut in 5efb356")
+    axial_fit_points: int = tuned(2000, unit="points", chosen="not tuned: set with the axial cut in 5efb356")
+    axial_flat_fraction: float = tuned(0.03, unit="fraction", chosen="not tuned: set with the axial cut in 5efb356")
+    axial_min_bins: int = tuned(3, unit="count", chosen="not tuned: set with the axial cut in 5efb356")
+    axial_slice_points: int = tuned(
+        25, unit="points", chosen="calibration (phase 1), with axis_split_pixels 400: pooled correct detection "
+        "0.730 -> 0.739 (half a radius held 5-10 points on far thin pipes; 062236b)")
+    elbow_cut_keep: float = tuned(0.6, unit="fraction", chosen="not tuned: set with the elbow cut in 336d4d7")
+    elbow_cut_rounds: int = tuned(4, unit="count", chosen="not tuned: set with the elbow cut in 336d4d7")
+    elbow_cut_k: float = tuned(3.0, unit="sigma", chosen="not tuned: set with the elbow cut in 336d4d7")
+    reassign_refit_pixels: int = tuned(
+        4000, unit="px", chosen="not tuned: a speed bound, set with the reassignment in c398b05")
+    thin_peel_fraction: float = tuned(
+        0.1, unit="fraction", chosen="calibration (phase 1): correct detection 0.811 -> 0.814 with stair_fraction "
+        "(e9416d7)")
+    stair_fraction: float = tuned(
+        0.8, unit="fraction", chosen="calibration (phase 1): 0.816 without it against 0.814, but the first phase's "
+        "default (now classic) 0.800 -> 0.792 without it (e9416d7)")
 
     def __post_init__(self) -> None:
         if not isinstance(self.window, int | np.integer) or self.window < 3 or self.window % 2 == 0:
             raise ValueError(f"window must be an odd integer >= 3, got {self.window!r}")
-        if self.crease_baseline is not None and self.crease_baseline < 0:
-            raise ValueError(f"crease_baseline must be >= 0 or None, got {self.crease_baseline!r}")
+        if self.crease_baseline not in (None, AUTO) and not (
+                isinstance(self.crease_baseline, int | np.integer) and self.crease_baseline >= 1):
+            raise ValueError(f"crease_baseline must be an integer >= 1, 'auto' or None, got {self.crease_baseline!r}")
         for name in ("zero_k", "jump_k", "crease_k", "crease_wide_k", "grow_k", "merge_k", "noisy_k", "split_k"):
             v = getattr(self, name)
             if not np.isfinite(v) or v <= 0:
@@ -205,8 +301,9 @@ class SegmentationParams:
             raise ValueError(f"crease_min_angle must be in [0, pi] radians, got {self.crease_min_angle!r}")
         if not self.sigma_floor_m > 0:
             raise ValueError(f"sigma_floor_m must be > 0, got {self.sigma_floor_m!r}")
-        if self.seed_erosion is not None and self.seed_erosion < 0:
-            raise ValueError(f"seed_erosion must be >= 0 or None, got {self.seed_erosion!r}")
+        if self.seed_erosion != AUTO and not (isinstance(self.seed_erosion, int | np.integer)
+                                              and self.seed_erosion >= 0):
+            raise ValueError(f"seed_erosion must be an integer >= 0 or 'auto', got {self.seed_erosion!r}")
         for name in ("min_seed_pixels", "grow_rounds", "max_grow_iterations", "min_patch_pixels",
                      "min_leftover_pixels", "min_region_pixels", "seed_tile", "final_fit_points"):
             if getattr(self, name) < 1:
@@ -214,8 +311,31 @@ class SegmentationParams:
         for name in ("max_fit_points", "merge_fit_points"):
             if getattr(self, name) < 10:
                 raise ValueError(f"{name} must be >= 10, got {getattr(self, name)!r}")
-        if self.decimation is not None and self.decimation < 1:
-            raise ValueError(f"decimation must be >= 1 or None, got {self.decimation!r}")
+        if self.decimation != AUTO and not (isinstance(self.decimation, int | np.integer) and self.decimation >= 1):
+            raise ValueError(f"decimation must be an integer >= 1 or 'auto', got {self.decimation!r}")
+        if self.split_seeds != AUTO and not isinstance(self.split_seeds, bool):
+            raise ValueError(f"split_seeds must be true, false or 'auto', got {self.split_seeds!r}")
+        for name in ("class_min_pixels", "max_tiled_leftover", "axis_split_pixels"):
+            v = getattr(self, name)
+            if v is not None and not v >= 1:
+                raise ValueError(f"{name} must be >= 1 or None (off), got {v!r}")
+        for name in ("absorb_rounds", "kplanes_iterations", "kplanes_trials", "axis_split_passes", "axial_min_bins",
+                     "axial_slice_points", "elbow_cut_rounds", "reassign_refit_pixels", "noise_block"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)!r}")
+        if self.axial_fit_points < 10:
+            raise ValueError(f"axial_fit_points must be >= 10, got {self.axial_fit_points!r}")
+        for name in ("max_variance_ratio", "plane_pair_tol", "kplanes_inlier_k", "face_broad_ratio", "elbow_cut_k",
+                     "axial_flat_fraction"):
+            v = getattr(self, name)
+            if not v > 0:
+                raise ValueError(f"{name} must be > 0, got {v!r}")
+        for name in ("face_keep", "elbow_cut_keep", "thin_peel_fraction", "stair_fraction"):
+            v = getattr(self, name)
+            if not 0 < v <= 1:
+                raise ValueError(f"{name} must be in (0, 1], got {v!r}")
+        if not 0 <= self.face_min_angle_deg <= 90:
+            raise ValueError(f"face_min_angle_deg must be in [0, 90] degrees, got {self.face_min_angle_deg!r}")
         if not (np.isfinite(self.absorb_k) and self.absorb_k > 0):
             raise ValueError(f"absorb_k must be a positive finite number, got {self.absorb_k!r}")
         if self.reassign_rounds < 0:
@@ -229,7 +349,7 @@ class SegmentationParams:
 
     def step(self, shape: tuple[int, int]) -> int:
         """Grid step of the segmentation proper (``decimation``, or 2 for images of at least 400 rows)."""
-        if self.decimation is not None:
+        if self.decimation != AUTO:
             return int(self.decimation)
         return 2 if min(shape) >= 400 else 1
 
@@ -239,20 +359,22 @@ class SegmentationParams:
             return self
         a = d * d
         return replace(self, min_seed_pixels=max(2, self.min_seed_pixels // a),
-                       class_min_pixels=max(4, self.class_min_pixels // a) if self.class_min_pixels else 0,
+                       class_min_pixels=None if self.class_min_pixels is None else max(4, self.class_min_pixels // a),
                        min_patch_pixels=max(2, self.min_patch_pixels // a),
                        min_region_pixels=max(2, self.min_region_pixels // a),
                        min_leftover_pixels=max(2, self.min_leftover_pixels // a), decimation=1)
 
     @property
     def baseline(self) -> int:
-        """Effective half baseline of the wide-baseline crease test (0: off)."""
-        return self.window if self.crease_baseline is None else int(self.crease_baseline)
+        """Effective half baseline of the wide-baseline crease test (0 when it is off)."""
+        if self.crease_baseline is None:
+            return 0
+        return self.window if self.crease_baseline == AUTO else int(self.crease_baseline)
 
     @property
     def erosion(self) -> int:
         """Effective seed erosion in pixels."""
-        return self.window // 2 if self.seed_erosion is None else self.seed_erosion
+        return self.window // 2 if self.seed_erosion == AUTO else int(self.seed_erosion)
 
 
 @dataclass(frozen=True)
