@@ -2,11 +2,11 @@
 
 The *code identity* (DESIGN 11.4) says which code made a record: the checkout's commit, a SHA-256 of the
 uncommitted changes to the project's packages (:data:`PACKAGES`: ``git diff HEAD`` of those directories plus
-every untracked, not ignored file under them), and the versions of plug-in packages (none exist yet:
-``plugins`` is an empty mapping). Outside a git checkout (an installed wheel, a copied tree) it is a SHA-256
-of the packages' files instead. The runner computes it once per run, in the parent process, and writes it
-into ``run.json`` and into every trial record; ``harness bench --resume`` refuses a run directory made by
-other code (:func:`harness.run.run_suite`).
+every untracked, not ignored file under them), and the versions of the plug-in packages whose methods the
+suite runs (:func:`plugin_versions`; an empty mapping without plug-ins). Outside a git checkout (an installed
+wheel, a copied tree) it is a SHA-256 of the packages' files instead. The runner computes it once per run, in
+the parent process, and writes it into ``run.json`` and into every trial record; ``harness bench --resume``
+refuses a run directory made by other code (:func:`harness.run.run_suite`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import os
 import platform
 import subprocess
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -60,7 +60,8 @@ class CodeIdentity:
         directories, then each untracked file's path and content); None when there are none, or outside git.
     source_sha256 : outside a git checkout, SHA-256 of every file of the packages (path and content, sorted by
         path, ``__pycache__`` left out); None in a checkout (the commit and the diff say it).
-    plugins : ``(distribution, version)`` of each plug-in package, sorted; empty (there are no plug-ins yet).
+    plugins : ``(distribution, version)`` of each plug-in package the run's methods come from, sorted (empty
+        without plug-ins; :func:`plugin_versions`).
     """
 
     commit: str | None
@@ -118,25 +119,84 @@ def _git(root: Path, *args: str) -> bytes | None:
         return None
 
 
-def plugin_versions() -> tuple[tuple[str, str], ...]:
-    """``(distribution, version)`` of the plug-in packages that provide methods (DESIGN 11.5).
+def plugin_versions(plugins: Iterable[tuple[str, str | None]] = ()) -> tuple[tuple[str, str], ...]:
+    """``(distribution, version)`` of the plug-in packages that provide a suite's methods (DESIGN 11.5), sorted.
 
-    There are no plug-ins yet, so this is empty; it is the one place to fill in when they arrive, so that their
-    versions enter the code identity.
+    Parameters
+    ----------
+    plugins : ``(module, distribution or None)`` of each plug-in method (:attr:`harness.suite.Suite.plugins`);
+        without a distribution, the one that installed the module's top-level package, if any.
+
+    The version is the distribution's; for an editable install, or a module imported from a directory on the
+    path that no distribution installed (keyed by its top-level package), the SHA-256 of its package's files is
+    added (``0.1.0 (editable, source 3c9a0b71d2e4)``, ``unpackaged (source ...)``), so that editing a plug-in
+    changes the code identity as editing the project does.
     """
-    return ()
+    out: dict[str, str] = {}
+    installed: Mapping[str, list[str]] | None = None
+    for module, dist in plugins:
+        top = module.split(".")[0]
+        if dist is None:
+            installed = metadata.packages_distributions() if installed is None else installed
+            dist = (installed.get(top) or [None])[0]
+        version, editable = None, dist is None
+        if dist is not None:
+            try:
+                version = metadata.version(dist)
+                editable = _editable(metadata.distribution(dist))
+            except metadata.PackageNotFoundError:
+                editable = True
+        if editable:
+            source = _module_source_hash(top)
+            version = f"{version or 'unpackaged'} ({'editable, ' if dist else ''}source {source[:12]})"
+        out[dist or top] = version or "unknown"
+    return tuple(sorted(out.items()))
 
 
-def code_identity(root: Path | None = None, packages: Sequence[str] = PACKAGES) -> CodeIdentity:
+def _editable(dist: metadata.Distribution) -> bool:
+    """Whether ``dist`` is an editable install (PEP 610 ``direct_url.json``: ``dir_info.editable``)."""
+    import json
+
+    try:
+        info = json.loads(dist.read_text("direct_url.json") or "{}")
+    except ValueError:
+        return False
+    return isinstance(info, dict) and bool((info.get("dir_info") or {}).get("editable"))
+
+
+def _module_source_hash(top: str) -> str:
+    """SHA-256 of the files of the top-level package or module ``top`` (as :func:`source_hash`; "unknown" when
+    it cannot be found)."""
+    import importlib.util
+
+    try:
+        spec = importlib.util.find_spec(top)
+    except (ImportError, ValueError):
+        spec = None
+    if spec is None:
+        return "unknown"
+    if spec.submodule_search_locations:
+        base = Path(next(iter(spec.submodule_search_locations)))
+        return source_hash(base.parent, [base.name])
+    if spec.origin and Path(spec.origin).is_file():
+        h = hashlib.sha256()
+        _hash_file(h, Path(spec.origin).name, Path(spec.origin))
+        return h.hexdigest()
+    return "unknown"
+
+
+def code_identity(root: Path | None = None, packages: Sequence[str] = PACKAGES,
+                  plugins: Sequence[tuple[str, str]] | None = None) -> CodeIdentity:
     """The identity of the code under ``root`` (default: the checkout or tree these packages were imported
-    from). See :class:`CodeIdentity`.
+    from), with the plug-ins' ``(distribution, version)`` pairs ``plugins`` (:func:`plugin_versions`; default
+    none). See :class:`CodeIdentity`.
 
     A git checkout counts only if it tracks the packages (a virtual environment's ``site-packages`` inside some
     repository's ignored ``.venv`` is not a checkout of them); otherwise the packages' files are hashed.
     """
     root = Path(root or ROOT)
     dirs = [d for d in packages if (root / d).is_dir()]
-    plugins = plugin_versions()
+    plugins = tuple(sorted(plugins)) if plugins is not None else plugin_versions()
     commit = _git(root, "rev-parse", "--verify", "-q", "HEAD")
     tracked = _git(root, "ls-files", "--", *dirs) if commit and dirs else None
     if not commit or not tracked:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import signal
 import sys
@@ -14,7 +15,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from harness.execute import failed_record, run_dask, run_local
-from harness.provenance import CodeIdentity, code_identity, describe_code, provenance
+from harness.provenance import CodeIdentity, code_identity, describe_code, plugin_versions, provenance
 from harness.store import RunDirectory, non_finite_paths, write_json_atomic
 from harness.suite import Suite, TrialSpec
 from harness.summary import summarise
@@ -77,11 +78,14 @@ def run_suite(suite: Suite, out: Path, options: RunOptions = RunOptions(), log: 
     record it would keep was made by other code (DESIGN 11.4), unless ``resume_any_code``: then ``run.json``
     lists every code identity the run mixes under ``mixed_codes``.
 
-    The code identity (:func:`harness.provenance.code_identity`) is computed once, here, and written into
-    ``run.json``, the summary's provenance and every trial record (``code``) as it is written.
+    The code identity (:func:`harness.provenance.code_identity`, with the versions of the plug-in packages the
+    suite's methods come from) is computed once, here, and written into ``run.json``, the summary's provenance
+    and every trial record (``code``) as it is written.
     """
     config_hash = suite.config_hash
     code = code_identity()
+    if suite.plugins:  # the versions of the plug-in packages the suite's methods come from
+        code = dataclasses.replace(code, plugins=plugin_versions(suite.plugins))
     code_json = code.as_json()
     specs: list[TrialSpec] = list(suite.trials)
     if options.only:

@@ -9,7 +9,11 @@ suite runs on the same trial and image::
     name: smoke
     seed: 2026
     timeout_s: 120
-    methods: {core: {classifier: select}, paper: {classifier: paper}}
+    methods:                               # what runs on every trial (harness.methods); core is required
+      core: {classifier: select}           # the core; params: its parameters, by stage (below)
+      paper: {classifier: paper}           # the core with the paper's classifier
+      core_merge4: {base: core, params: {segmentation: {merge_k: 4.0}}}   # an A/B variant, on the same scans
+      diff_change: {k_sigma: 4.0}          # a peer replacing one stage, with its options
     groups:
       - scene: mockup                      # shipped scene name, or a path to a scene YAML
         perturbation: mockup_perturbation  # shipped spec name, path, or omitted for no changes
@@ -19,6 +23,29 @@ suite runs on the same trial and image::
         noise_seeds: [0]
         max_range: 4.0                     # optional: clip the sensor's range (e.g. kinect_like < 4 m)
         sweep: {noise_scale: [0.5, 1.0, 2.0]}   # optional: each value is a group of its own (DESIGN 10.13)
+
+Methods (DESIGN 11.5; :mod:`harness.methods`). A method's name is a built-in method (``core``, ``paper``, a peer of
+:data:`recognition.peers.PEERS`), a plug-in installed under the entry-point group ``landmark_harness.methods``, or
+a name of one's own that says what it is: ``base: <one of those>`` (``core_merge4: {base: core, ...}``) or
+``entry: "package.module:factory"`` (a factory returning a :class:`recognition.Peer`). Its mapping holds:
+
+- ``classifier``: ``select`` or ``paper`` (default: ``paper`` for ``paper`` and ``base: paper``, else the ``core``
+  method's);
+- ``params``: the core's parameters, ``params.<stage>.<field>``, with the stages of
+  :data:`recognition.interfaces.PARAM_STAGES` - ``segmentation`` (``SegmentationParams``), ``classify`` (the
+  classifier's ``SelectParams`` or ``PaperParams``), ``describe`` (the rest of ``DescribeParams``), ``match``
+  (``MatchParams``), ``localise`` (the rest of ``LocaliseParams``: ``verify``, ``icp``, ``icp_screen`` as nested
+  mappings), ``change`` (``ChangeParams``); fields are read by dataclass introspection (:mod:`harness.params`), so
+  every field of those classes is reachable, checked against its type and by the class itself;
+- for a stage method (a peer or a plug-in), its options (keys among its ``defaults``).
+
+Every method runs the core's stages with the ``core`` method's ``params``, its own deep-merged on top (``classify``
+only between methods of one classifier): two methods of a suite differ by exactly what their mappings say, and
+run on the very same scans, so ``core`` against ``core_merge4`` is an A/B of one value on the same images. The
+trial computes what methods share once (one segmentation per ``segmentation`` parameters, one description per
+``describe`` parameters, one pose per description and ``localise`` parameters; its times are reported by the
+first method that needed it). The suite's raw mapping enters :attr:`Suite.config_hash`, with the factory each
+plug-in registered by name stands for; the plug-ins' versions enter the run's code identity.
 """
 
 from __future__ import annotations
@@ -28,10 +55,13 @@ import itertools
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from scenes.config import ConfigError, Fields, load_yaml, show
 from scenes.generator import DATA_DIR as SCENE_DATA
+
+if TYPE_CHECKING:
+    from harness.methods import MethodSpec
 
 SUITES_DIR = Path(__file__).parent / "suites"
 METHODS = ("core", "paper")
@@ -77,6 +107,16 @@ class TrialPlan:
 
     methods: dict[str, dict[str, Any]]
     oracles: tuple[str, ...] = ()
+    specs: dict[str, MethodSpec] | None = None  # the validated methods (None: read from ``methods``)
+
+    def method_specs(self) -> dict[str, MethodSpec]:
+        """What every method runs (:class:`harness.methods.MethodSpec`), ``core`` first."""
+        specs = self.specs
+        if specs is None:
+            from harness.methods import method_specs
+
+            specs = method_specs(Fields(self.methods, "<plan>", "methods"))
+        return {"core": specs["core"], **{m: s for m, s in specs.items() if m != "core"}}
 
 
 @dataclass(frozen=True)
@@ -91,15 +131,26 @@ class Suite:
     trials: tuple[TrialSpec, ...]
     raw: dict[str, Any]
     oracles: tuple[str, ...] = ()
+    specs: dict[str, MethodSpec] = field(default_factory=dict)
 
     @property
     def plan(self) -> TrialPlan:
-        return TrialPlan(self.methods, self.oracles)
+        return TrialPlan(self.methods, self.oracles, self.specs or None)
+
+    @property
+    def plugins(self) -> tuple[tuple[str, str | None], ...]:
+        """``(module, distribution or None)`` of each plug-in method (for the code identity)."""
+        return tuple(sorted({(s.module, s.distribution) for s in self.specs.values() if s.kind == "plugin"},
+                            key=lambda p: (p[0], p[1] or "")))
 
     @property
     def config_hash(self) -> str:
-        """SHA-256 of the canonical JSON of the suite and of every file it refers to."""
+        """SHA-256 of the canonical JSON of the suite, of the factory each plug-in method registered by name
+        stands for, and of every file the suite refers to."""
         h = hashlib.sha256(json.dumps(self.raw, sort_keys=True, default=str).encode())
+        registered = sorted((m, s.entry) for m, s in self.specs.items() if s.kind == "plugin" and s.base != s.entry)
+        if registered:  # (no such method: the hash of a suite without plug-ins is what it always was)
+            h.update(json.dumps(registered).encode())
         files = sorted({t.scene_file for t in self.trials if t.scene_file}
                        | {t.family_config for t in self.trials if t.family_config}
                        | {t.perturbation_file for t in self.trials if t.perturbation_file})
@@ -147,7 +198,7 @@ def load_suite(name_or_file: str) -> Suite:
 
 
 def suite_from_dict(data: Any, source: str = "<suite>", base: Path = Path(".")) -> Suite:
-    from recognition.describe import CLASSIFIERS
+    from harness.methods import method_specs
     from sensors.config import load_sensor  # validated here so a bad preset fails before any trial runs
 
     root = Fields(data, source)
@@ -158,27 +209,9 @@ def suite_from_dict(data: Any, source: str = "<suite>", base: Path = Path(".")) 
     seed = root.integer("seed", 0, min=0)
     timeout_s = root.number("timeout_s", 300.0, positive=True)
     methods_f = root.sub("methods", {"core": {}})
-    methods: dict[str, dict[str, Any]] = {}
-    from recognition.peers import MISSING, PEERS
-
-    for m in methods_f.data:
-        if m not in METHODS and m not in PEERS:
-            why = f" ({MISSING[m]})" if m in MISSING else ""
-            raise methods_f.error(str(m), f"unknown method{why} (known: {', '.join((*METHODS, *PEERS))})")
-        params = methods_f.raw(m)
-        if params is not None and not isinstance(params, dict):
-            raise methods_f.error(str(m), "expected a mapping of parameters")
-        # validated here, not at each trial: a typo would otherwise fail every trial of the run one by one
-        pf = Fields(params or {}, source, methods_f.child_path(str(m)))
-        if m in PEERS:
-            pf.check_unknown(tuple(PEERS[m].defaults))
-        else:
-            if pf.has("classifier"):
-                pf.string("classifier", choices=CLASSIFIERS)
-            pf.check_unknown(("classifier",))
-        methods[m] = dict(params or {})
-    if "core" not in methods:
-        raise methods_f.error(None, "the suite must run the 'core' method")
+    # validated here, not at each trial: a typo would otherwise fail every trial of the run one by one
+    specs = method_specs(methods_f)
+    methods: dict[str, dict[str, Any]] = {m: dict(methods_f.data[m] or {}) for m in specs}
     oracles = root.raw("oracles", [])
     if not isinstance(oracles, list) or any(o not in ORACLES for o in oracles) or len(set(oracles)) != len(oracles):
         raise root.error("oracles", f"expected a list of distinct oracles from {', '.join(ORACLES)}, "
@@ -240,7 +273,7 @@ def suite_from_dict(data: Any, source: str = "<suite>", base: Path = Path(".")) 
         dup = sorted({i for i in ids if ids.count(i) > 1})[0]
         raise root.error("groups", f"two groups produce the same trial id {dup!r}: give them distinct labels")
     root.check_unknown()
-    return Suite(name, source, seed, timeout_s, methods, tuple(trials), data, tuple(oracles))
+    return Suite(name, source, seed, timeout_s, methods, tuple(trials), data, tuple(oracles), specs)
 
 
 @dataclass(frozen=True)

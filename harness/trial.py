@@ -22,11 +22,12 @@ from evaluation.change import change_section, observable_features
 from evaluation.oracles import truth_classification, truth_pairings, truth_segmentation
 from evaluation.patches import classification_section, segmentation_section
 from evaluation.pose import changed_features, constrains_pose, pose_section
+from harness.methods import MethodSpec, call_stage, stage_method
 from harness.suite import TrialPlan, TrialSpec
 from recognition.change import detect_changes
 from recognition.describe import DescribeParams, core_sigma, describe
+from recognition.interfaces import CoreParams
 from recognition.localisation import LocaliseParams, ModelPredictor, localise
-from recognition.peers import PEERS
 from scenes.families import family_member
 from scenes.model import SceneModel
 from scenes.perturb import ChangeTruth, PerturbationSpec, perturb
@@ -178,22 +179,19 @@ def run_trial(spec: TrialSpec, plan: TrialPlan, prepared: PreparedScene,
     scan, truth = trial_scan(spec, prepared, config, view.T_world_sensor)
     timing["sensor"] = time.perf_counter() - t0
     context = TrialContext(scan, truth, prepared)
-    method_records = {}
-    core_description = None
-    for name, params in plan.methods.items():  # core first (the suite requires it): peers reuse its stages
-        peer = PEERS.get(name)
-        if peer is not None:
-            method_records[name], _ = run_pipeline(context, method_params("core", plan.methods["core"]),
-                                                   core=core_description, peer=(peer, params))
-            continue
-        shared = core_description.segmentation if core_description is not None else None
-        method_records[name], desc = run_pipeline(context, method_params(name, params), segmentation=shared)
-        if core_description is None:
-            core_description = desc
+    specs = plan.method_specs()  # core first: the others reuse what they share with it
+    stage_methods = {name: stage_method(ms) for name, ms in specs.items()}  # a broken plug-in fails the trial here
+    records = {}
+    for name, ms in specs.items():
+        peer = stage_methods[name]
+        records[name], _ = run_pipeline(context, ms.params, peer=(peer, ms.options) if peer is not None else None,
+                                        method=ms)
+    method_records = {name: records[name] for name in plan.methods}
+    core = specs["core"].params
+    core_description = context.description(core.describe)[0] if plan.oracles else None
     oracle_records = {}
-    core_params = method_params("core", plan.methods.get("core", {}))
     for oracle in plan.oracles:
-        oracle_records[oracle], _ = run_pipeline(context, core_params, oracle=oracle, core=core_description)
+        oracle_records[oracle], _ = run_pipeline(context, core, oracle=oracle, core=core_description)
     if artifacts_dir is not None:
         write_artifacts(artifacts_dir, scan, truth)
     timing["total"] = time.perf_counter() - t_start
@@ -216,13 +214,29 @@ def run_trial(spec: TrialSpec, plan: TrialPlan, prepared: PreparedScene,
     return record
 
 
-def method_params(name: str, params: dict[str, Any]) -> DescribeParams:
-    """The core's parameters for a suite method (``core``: the ``select`` classifier, ``paper``: the paper's)."""
-    classifier = params.get("classifier", "paper" if name == "paper" else "select")
-    unknown = set(params) - {"classifier"}
-    if unknown:
-        raise ValueError(f"method {name!r}: unknown parameter(s) {', '.join(sorted(unknown))}")
-    return DescribeParams(classifier=classifier)
+def method_params(name: str, params: dict[str, Any], core: dict[str, Any] | None = None) -> DescribeParams:
+    """The core's description parameters for a suite method's mapping (``core``: the ``select`` classifier,
+    ``paper``: the paper's; ``params`` applied on top of those of the ``core`` method's mapping ``core``)."""
+    return method_core_params(name, params, core).describe
+
+
+def method_core_params(name: str, params: dict[str, Any], core: dict[str, Any] | None = None) -> CoreParams:
+    """All of the core's parameters for a suite method's mapping (see :func:`method_params`)."""
+    from harness.methods import method_specs
+    from scenes.config import Fields
+
+    methods = {"core": dict(core or {})} if name != "core" else {}
+    methods[name] = dict(params or {})
+    return method_specs(Fields(methods, "<suite>", "methods"))[name].params
+
+
+def _key(params: Any) -> Any:
+    """A dictionary key for a frozen parameter dataclass (its repr if a field is unhashable)."""
+    try:
+        hash(params)
+        return params
+    except TypeError:
+        return repr(params)
 
 
 class TrialContext:
@@ -233,7 +247,10 @@ class TrialContext:
         self.median_range = float(np.nanmedian(truth.true_range)) if np.isfinite(truth.true_range).any() else None
         self._apriori_at_truth = None
         self._observable: dict[str, str] | None = None
-        self.poses: dict[int, tuple[Any, tuple]] = {}  # id(description) -> (description, estimate_pose output)
+        # (id(description), LocaliseParams) -> (description, estimate_pose output)
+        self.poses: dict[tuple[int, Any], tuple[Any, tuple]] = {}
+        self._descriptions: dict[Any, Any] = {}  # DescribeParams -> the core's description
+        self._segmentations: dict[Any, Any] = {}  # SegmentationParams -> the core's segmentation
         self._segmentation_sections: dict[int, tuple[np.ndarray, dict[str, Any]]] = {}
         self.object_of = {f.id: o.id for m in (prepared.apriori, prepared.actual) for o in m.objects
                           for f in o.features}
@@ -254,6 +271,20 @@ class TrialContext:
             self._observable = observable_features(self.truth, self.prepared.change_truth, self.apriori_at_truth)
         return self._observable
 
+    def description(self, params: DescribeParams) -> tuple[Any, float | None, float | None]:
+        """``(description, segmentation time, classification time)`` of the core with ``params``, computed once
+        per trial: a method that shares the parameters reuses it (times None: reported by the first), one that
+        shares the segmentation parameters reuses the segmentation (segmentation time None)."""
+        key = _key(params)
+        if key in self._descriptions:
+            return self._descriptions[key], None, None
+        segmentation = self._segmentations.get(_key(params.segmentation))
+        desc = describe(self.scan, params, segmentation)
+        self._descriptions[key] = desc
+        self._segmentations.setdefault(_key(params.segmentation), desc.segmentation)
+        return (desc, desc.timing_s["segmentation"] if segmentation is None else None,
+                desc.timing_s["classification"])
+
     def segmentation_section(self, labels: np.ndarray) -> dict[str, Any]:
         """The Hoover scores of ``labels``, computed once per label image (methods that share the core's
         segmentation share its scores)."""
@@ -263,32 +294,37 @@ class TrialContext:
         return copy.deepcopy(self._segmentation_sections[key][1])
 
 
-def run_pipeline(ctx: TrialContext, params: DescribeParams, segmentation=None, oracle: str | None = None,
-                 core=None, peer: tuple | None = None) -> tuple[dict[str, Any], Any]:
-    """Run the core's stages on the scan, with at most one stage replaced by its oracle or by a peer method
-    (``(Peer, params)``), and evaluate each.
+def run_pipeline(ctx: TrialContext, params: CoreParams, oracle: str | None = None, core=None,
+                 peer: tuple | None = None, method: MethodSpec | None = None) -> tuple[dict[str, Any], Any]:
+    """Run the core's stages on the scan with ``params``, with at most one stage replaced by its oracle or by a
+    stage method (``(Peer, options)``; ``method`` its spec), and evaluate each.
 
-    ``segmentation`` (or, for oracles and peers, the core's description ``core``) is reused where the stages
-    before the one that differs are the same: its time is then reported once, by the run that computed it.
+    What the stages before the one that differs share with an earlier run of the trial (the description of the
+    same describe parameters, the pose of the same description and localise parameters; for oracles, the core's
+    description ``core``) is reused: its time is then reported once, by the run that computed it.
     """
     scan, truth, prepared = ctx.scan, ctx.truth, ctx.prepared
     timing: dict[str, float | None] = dict.fromkeys(STAGES[1:])
-    if peer is not None and peer[0].replaces == "description":
+    replaces = peer[0].replaces if peer is not None else None
+    if replaces == "description":
         t0 = time.perf_counter()
-        desc = peer[0].run(scan, peer[1])
+        desc = _call(method, peer[0], scan, peer[1])
         timing["segmentation"] = time.perf_counter() - t0  # a primitive detector segments and classifies at once
-    elif (oracle in ("pose", "pairing") or peer is not None) and core is not None:
+    elif oracle in ("pose", "pairing") and core is not None:
         desc = core
-    else:
+    elif oracle in ("segmentation", "classification"):
+        segmentation = None
         if oracle == "segmentation":
             segmentation = truth_segmentation(scan, truth, core_sigma(scan))
-        elif oracle == "classification" and core is not None:
+        elif core is not None:
             segmentation = core.segmentation
-        desc = describe(scan, params, segmentation)
+        desc = describe(scan, params.describe, segmentation)
         timing["segmentation"] = desc.timing_s["segmentation"] if segmentation is None else None
         timing["classification"] = desc.timing_s["classification"]
         if oracle == "classification":
             desc = truth_classification(desc, truth)
+    else:
+        desc, timing["segmentation"], timing["classification"] = ctx.description(params.describe)
     record: dict[str, Any] = {
         "segmentation": ctx.segmentation_section(desc.labels),
         "classification": classification_section(desc, truth, prepared.actual),
@@ -296,38 +332,45 @@ def run_pipeline(ctx: TrialContext, params: DescribeParams, segmentation=None, o
         "change": None,
         "timing_s": timing,
     }
-    pose_peer = peer if peer is not None and peer[0].replaces == "pose" else None
+    pose_peer = peer if replaces == "pose" else None
     if oracle is None and pose_peer is None:  # the core's localisation of this description: once per trial
-        key = id(desc)
+        key = (id(desc), _key(params.localise))
         if key in ctx.poses and ctx.poses[key][0] is desc:
             T_est, cov, predicted, pose_record, _ = ctx.poses[key][1]
             pose_record, pose_timing = copy.deepcopy(pose_record), {}  # its time is the first run's
         else:
-            found = estimate_pose(ctx, desc, None)
+            found = estimate_pose(ctx, desc, None, params=params.localise)
             ctx.poses[key] = (desc, found)
             T_est, cov, predicted, pose_record, pose_timing = found
     else:
-        T_est, cov, predicted, pose_record, pose_timing = estimate_pose(ctx, desc, oracle, pose_peer)
+        T_est, cov, predicted, pose_record, pose_timing = estimate_pose(ctx, desc, oracle, pose_peer,
+                                                                        params=params.localise, method=method)
     record["pose"] = pose_record
     timing.update(pose_timing)
     if T_est is not None:
         t0 = time.perf_counter()
-        if peer is not None and peer[0].replaces == "change":
-            result = peer[0].run(desc, scan, prepared.apriori, T_est, cov, prepared.predictor, peer[1],
-                                 predicted=predicted)
+        if replaces == "change":
+            result = _call(method, peer[0], desc, scan, prepared.apriori, T_est, cov, prepared.predictor, peer[1],
+                           predicted=predicted)
         else:
             result = detect_changes(desc, scan, prepared.apriori, T_est, cov, predicted=predicted,
-                                    predictor=prepared.predictor)
+                                    predictor=prepared.predictor, params=params.change)
         timing["change"] = time.perf_counter() - t0 - result.timing_s.get("predict", 0.0)
         record["change"] = change_section(result, truth, prepared.change_truth, ctx.apriori_at_truth, ctx.object_of,
                                           observable=ctx.observable)
     return record, desc
 
 
-def estimate_pose(ctx: TrialContext, desc, oracle: str | None, peer: tuple | None = None):
+def _call(method: MethodSpec | None, peer, *args, **kwargs):
+    """A stage method's ``run`` (a plug-in's failures and wrong results become :class:`PluginError`)."""
+    return call_stage(method, peer, *args, **kwargs) if method is not None else peer.run(*args, **kwargs)
+
+
+def estimate_pose(ctx: TrialContext, desc, oracle: str | None, peer: tuple | None = None,
+                  params: LocaliseParams | None = None, method: MethodSpec | None = None):
     """``(T_world_sensor or None, covariance, predicted image, pose record, timings)``. The ``pose`` oracle
     gives the true pose; ``pairing`` gives the truth correspondences to the pose stage; a registration peer
-    replaces the core's localisation."""
+    (``(Peer, options)``) replaces the core's localisation (``params``, default :class:`LocaliseParams`)."""
     truth = ctx.truth
     if oracle == "pose":
         T = truth.T_world_sensor
@@ -335,11 +378,11 @@ def estimate_pose(ctx: TrialContext, desc, oracle: str | None, peer: tuple | Non
                "constrained": ctx.constrained, "oracle": True, "initial": None}
         return T, np.zeros((6, 6)), None, rec, {}
     if peer is not None:
-        result = peer[0].run(desc, ctx.scan, ctx.prepared.apriori, peer[1], ctx.prepared.predictor)
+        result = _call(method, peer[0], desc, ctx.scan, ctx.prepared.apriori, peer[1], ctx.prepared.predictor)
     else:
         pairings = truth_pairings(desc, truth, ctx.prepared.change_truth) if oracle == "pairing" else None
-        result = localise(desc, ctx.scan, ctx.prepared.apriori, LocaliseParams(), ctx.prepared.predictor.simulator,
-                          pairings=pairings)
+        result = localise(desc, ctx.scan, ctx.prepared.apriori, LocaliseParams() if params is None else params,
+                          ctx.prepared.predictor.simulator, pairings=pairings)
     rec = pose_section(result, truth.T_world_sensor, ctx.median_range, ctx.constrained,
                        ctx.prepared.model_points)
     t = result.timing_s

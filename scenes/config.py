@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-MAX_REASON = 500
+MAX_REASON = 1500  # the longest legitimate reason lists a parameter dataclass's ~40 field names
 _REPR = reprlib.Repr()
 _REPR.maxlevel, _REPR.maxlist, _REPR.maxdict, _REPR.maxtuple, _REPR.maxset = 3, 6, 6, 6, 6
 _REPR.maxstring, _REPR.maxother = 80, 80
