@@ -37,6 +37,7 @@ class Rerun:
     truth: ScanTruth
     prepared: PreparedScene
     description: SceneDescription
+    localise_params: Any = None  # the core's LocaliseParams from the suite (None: the defaults)
 
 
 def spec_from_record(record: Mapping[str, Any]) -> TrialSpec:
@@ -58,8 +59,18 @@ def rerun(record: Mapping[str, Any], methods: Mapping[str, Mapping[str, Any]], c
     T_world_sensor = np.asarray(record["view"]["T_world_sensor"], dtype=np.float64)
     rng = np.random.default_rng([spec.suite_seed, spec.index])
     scan, truth = prepared.simulator.simulate(config, T_world_sensor, rng)
-    desc = describe(scan, method_params("core", dict(methods.get("core", {}))))
-    return Rerun(spec, scan, truth, prepared, desc)
+    core = dict(methods.get("core", {}))
+    desc = describe(scan, method_params("core", core))
+    return Rerun(spec, scan, truth, prepared, desc, _localise_params(core))
+
+
+def _localise_params(core: Mapping[str, Any]) -> Any:
+    """The core method's localisation parameters as the suite sets them (None where the harness has no
+    per-method localisation parameters: the defaults)."""
+    from harness import trial
+
+    full = getattr(trial, "method_core_params", None)
+    return getattr(full("core", dict(core)), "localise", None) if full is not None else None
 
 
 def reproduced(record: Mapping[str, Any], desc: SceneDescription) -> bool:
@@ -105,18 +116,26 @@ def predicted_change_index(truth: ScanTruth, features: Sequence[Mapping[str, Any
     return lut[np.asarray(truth.surface_id)]
 
 
-def estimated_poses(r: Rerun, record_pose: Mapping[str, Any]) -> tuple[np.ndarray | None, np.ndarray | None]:
+def localise_again(r: Rerun):
+    """The core's localisation of the re-run's description against the a priori model, as
+    :func:`harness.trial.estimate_pose` runs it (:class:`recognition.localisation.PoseResult`: the pose before
+    and after ICP, ``ok`` and ``reason``)."""
+    from recognition.localisation import LocaliseParams, localise
+
+    params = r.localise_params if r.localise_params is not None else LocaliseParams()
+    return localise(r.description, r.scan, r.prepared.apriori, params, r.prepared.predictor.simulator)
+
+
+def estimated_poses(r: Rerun, record_pose: Mapping[str, Any], located=None
+                    ) -> tuple[np.ndarray | None, np.ndarray | None]:
     """The core's ``T_world_sensor`` before and after ICP: from the pose record when it holds them
-    (``initial.T_world_sensor``, ``T_world_sensor``), else by re-running the pose stage (after ICP only)
-    through :func:`harness.trial.estimate_pose` when that stage exists. ``(None, None)`` when neither works."""
+    (``initial.T_world_sensor``, ``T_world_sensor``), else from the localisation run again (``located``, or
+    :func:`localise_again`). ``(None, None)`` when neither has a pose."""
     after = record_pose.get("T_world_sensor")
     before = (record_pose.get("initial") or {}).get("T_world_sensor")
     if after is None:
-        from harness import trial
-
-        if hasattr(trial, "estimate_pose") and hasattr(trial, "TrialContext"):
-            out = trial.estimate_pose(trial.TrialContext(r.scan, r.truth, r.prepared), r.description, None)
-            after = out[0] if out is not None else None
+        located = located if located is not None else localise_again(r)
+        after, before = located.T_world_sensor, located.T_world_sensor_initial
     return _matrix(before), _matrix(after)
 
 
@@ -135,64 +154,123 @@ def model_range(r: Rerun, T_world_sensor: np.ndarray) -> np.ndarray:
     return Simulator.from_scene(r.prepared.apriori).truth_image(sensor, T_world_sensor, check=False)[0]
 
 
-def registration_residuals(r: Rerun, record_pose: Mapping[str, Any]
+def registration_residuals(r: Rerun, record_pose: Mapping[str, Any], located=None
                            ) -> tuple[np.ndarray | None, np.ndarray] | None:
     """Measured minus a priori model range with the model cast from the core's estimated pose, before ICP
     (None when unknown) and after; None when there is no estimate to draw."""
-    before, after = estimated_poses(r, record_pose)
+    before, after = estimated_poses(r, record_pose, located)
     if after is None:
         return None
     return (None if before is None else r.scan.range - model_range(r, before)), r.scan.range - model_range(r, after)
 
 
+def _pose_words(pose: Mapping[str, Any] | None, key: str = "") -> str:
+    sec = (pose or {}).get(key) if key else pose
+    if not sec or sec.get("rotation_error_deg") is None:
+        return ""
+    return f"{sec['rotation_error_deg']:.2f} deg, {sec['translation_error_mm']:.1f} mm from the truth"
+
+
+CAPTIONS = {
+    "range": "The range image: distance along each ray in metres (colour bar below; black: no return). Look for "
+             "the span of ranges and the holes: grazing faces, shiny parts and the sky give none.",
+    "shaded": "Cosine-shaded range image (black: no return). The surfaces as the sensor saw them, noise "
+              "included: the paper's Fig. 2.",
+    "hk": "H-K curvature classes per pixel, the paper's central step: signs of the mean (H) and Gaussian (K) "
+          "curvature beyond their propagated noise; patches grow from connected pieces of one class. Look for "
+          "speckle on planes (noise above the threshold) and thin bands along creases.",
+    "truth": "Truth surfaces, each in its own colour: what the segmentation should find (Hoover's ground truth).",
+    "regions": "The core's regions, each in the colour of the truth surface it mostly covers, so a right "
+               "segmentation looks like the truth picture; a lighter or darker shade of one colour is a second "
+               "region on that surface (over-segmentation), a colour absent from the truth covers no single "
+               "surface. Numbers: the patch ids of the paper's classification table.",
+    "classes": "The core's class labels over the shaded image, in the class colours of every table; red stripes: "
+               "the label differs from the truth class.",
+    "change_truth": "Truth change label of every visible feature (a priori model against the actual scene).",
+    "change_core": "The core's change label of every visible feature: compare with the truth change map.",
+    "registration": "Registration: the a priori model cast from the core's estimated pose, measured minus model "
+                    "range, before ICP (the pose from matched invariants) and after. White means registered; "
+                    "a red/blue ramp across a surface is a rotation error, a uniform colour a shift.",
+    "scene": "The scene in 3D: the a priori model (grey, dashed) against the actual scene (in its change "
+             "colours; missing features red dashed), the measured points, and the sensor's field of view at the "
+             "true pose (black) and as estimated before (dotted) and after ICP (dashed).",
+}
+
+
 def draw(record: Mapping[str, Any], r: Rerun, why: str) -> GalleryTrial:
-    """The gallery entry of one re-run trial."""
+    """The gallery entry of one re-run trial: its pictures, each with a caption saying what to look at."""
+    from reports.colours import matched_region_colours
+    from reports.scene3d import corner_rays, scene_figure, scene_labels
     from sensors.io import shaded_image
 
     core = (record.get("methods") or {}).get("core") or {}
     patches = (core.get("classification") or {}).get("patches", [])
     shade = shaded_image(r.scan)
+    seg = r.description.segmentation
+    truth_ids = np.where(r.truth.surface_id >= 0, r.truth.surface_id, -1)
     notes: list[str] = []
     if not reproduced(record, r.description):
         notes.append("The re-run's patches differ from the recorded ones (the code changed since the run?): "
                      "the pictures show the current code, the numbers are the run's.")
     panels = [
-        image(figures.shaded_picture(shade), "Cosine-shaded range image (black: no return)."),
-        image(figures.region_picture(np.where(r.truth.surface_id >= 0, r.truth.surface_id, -1),
-                                     "truth surfaces", number_min_pixels=10**9),
-              "Truth surfaces (each in its own colour)."),
-        image(figures.region_picture(r.description.labels), "The core's regions, numbered (patch ids of "
-              f"{MIN_SCORED_PIXELS} pixels or more) as in the paper's classification table."),
-        image(figures.class_overlay_picture(shade, r.description.class_image(), wrong_label_mask(r.description,
-                                                                                                 patches)),
-              "The core's labels over the shaded image; red stripes: label differs from the truth class."),
+        image(figures.range_picture(r.scan.range), CAPTIONS["range"]),
+        image(figures.shaded_picture(shade), CAPTIONS["shaded"]),
+        image(figures.hk_picture(seg.hk_class, seg.edges, r.scan.valid), CAPTIONS["hk"]),
+        image(figures.region_picture(truth_ids, "truth surfaces", number_min_pixels=10**9,
+                                     key="each truth surface in its own colour; black: no surface"),
+              CAPTIONS["truth"]),
+        image(figures.region_picture(r.description.labels, colours=matched_region_colours(r.description.labels,
+                                                                                          truth_ids)),
+              CAPTIONS["regions"]),
+        image(figures.class_overlay_picture(shade, r.description.class_image(),
+                                            wrong_label_mask(r.description, patches)), CAPTIONS["classes"]),
+        image(figures.change_picture(shade, truth_change_index(r.truth, r.prepared), "truth change labels"),
+              CAPTIONS["change_truth"]),
     ]
-    pose = core.get("pose")
-    try:
-        residuals = registration_residuals(r, pose) if pose else None
-        failure = ""
-    except Exception as exc:  # noqa: BLE001 - a picture that cannot be drawn becomes a note
-        residuals, failure = None, f"could not be drawn ({type(exc).__name__}: {exc})."
-    if residuals is not None:
-        before = "before and after ICP" if residuals[0] is not None else "after ICP"
-        panels.append(image(figures.registration_picture(*residuals, "registration: measured - model range"),
-                            f"Registration: the a priori model cast from the core's estimated pose, {before}.",
-                            width_px=640))
-    else:
-        notes.append("Registration before and after ICP: " + (failure or (
-            "not built yet (pose is null in the record)." if not pose else "no pose estimate to draw (the pose "
-            "stage gave none for this trial).")))
-    panels.append(image(figures.change_picture(shade, truth_change_index(r.truth, r.prepared),
-                                               "truth change labels"),
-                        "Truth change label of every visible feature (a priori model vs actual scene)."))
     change = core.get("change")
     predicted = predicted_change_index(r.truth, change.get("features", [])) if change else None
+    pose = core.get("pose")
     if predicted is not None:
         panels.append(image(figures.change_picture(shade, predicted, "predicted change labels (core)"),
-                            "The core's change label of every visible feature."))
+                            CAPTIONS["change_core"]))
+    elif not change:
+        notes.append("Predicted change map: none, " + ("the pose stage gave no pose to compare the model at."
+                                                      if pose else "change detection did not run (no pose record)."))
     else:
-        notes.append("Predicted change map: " + ("not built yet (change is null in the record)." if not change
-                     else "the change records do not name their features."))
+        notes.append("Predicted change map: the change records do not name their features.")
+    located = None
+    poses: dict[str, np.ndarray | None] = {"true": np.asarray(r.truth.T_world_sensor)}
+    if pose:
+        try:
+            if pose.get("T_world_sensor") is None:
+                located = localise_again(r)
+                if not located.ok:
+                    notes.append(f"The re-run's pose is not ok ({located.reason}): the registration and the 3D "
+                                 "scene show the pose it would give." if located.T_world_sensor is not None
+                                 else f"No pose estimate to draw: {located.reason}.")
+            poses["initial"], poses["estimated"] = estimated_poses(r, pose, located)
+            residuals = registration_residuals(r, pose, located)
+            if residuals is not None:
+                subs = (f"before ICP: {_pose_words(pose, 'initial')}", f"after ICP: {_pose_words(pose)}")
+                panels.append(image(figures.registration_picture(*residuals, "registration: measured - model "
+                                                                 "range", subtitles=subs),
+                                    CAPTIONS["registration"], width_px=1320, span=2))
+        except Exception as exc:  # noqa: BLE001 - a picture that cannot be drawn becomes a note
+            notes.append(f"Registration before and after ICP could not be drawn ({type(exc).__name__}: {exc}).")
+    else:
+        notes.append("Registration before and after ICP: the record has no pose section.")
+    try:
+        apriori, actual = r.prepared.apriori.features, r.prepared.actual.features
+        T = np.asarray(r.truth.T_world_sensor)
+        pts = r.scan.points.reshape(-1, 3)
+        pts = pts[np.all(np.isfinite(pts), axis=1)] @ T[:3, :3].T + T[:3, 3]
+        depth = float((record.get("view") or {}).get("median_range_m") or np.nanmedian(r.scan.range))
+        panels.append(image(scene_figure(apriori, actual, scene_labels(apriori, actual,
+                                                                       r.prepared.change_truth.feature_label),
+                                         poses, corner_rays(r.scan.sensor.ray_directions()), depth, pts),
+                            CAPTIONS["scene"], width_px=1320, span=2))
+    except Exception as exc:  # noqa: BLE001
+        notes.append(f"The 3D scene could not be drawn ({type(exc).__name__}: {exc}).")
     return GalleryTrial(str(record["trial_id"]), str(record["spec"].get("group", "")), why, tuple(panels),
                         tuple(notes))
 

@@ -6,7 +6,7 @@ cannot embed them), so the Markdown stays short and plain.
 
 from __future__ import annotations
 
-from reports.document import Block, Cell, Code, Document, Grid, Image, Note, Para, Section, Table
+from reports.document import Block, Cell, Code, Document, Grid, Image, Links, Note, Para, Section, Table
 
 NOTE_PREFIX = {"fail": "**FAIL:** ", "pass": "**PASS:** ", "warn": "**Warning:** "}
 
@@ -22,6 +22,8 @@ def escape_md(text: str) -> str:
 def render_markdown(doc: Document) -> str:
     """The whole summary."""
     lines = [f"# {escape_md(doc.title)}", "", f"_{escape_md(doc.subtitle)}_", ""]
+    for b in getattr(doc, "header", ()):
+        lines += [block_md(b), ""]
     for s in doc.sections:
         lines += _section(s, 2)
     return "\n".join(lines).rstrip() + "\n"
@@ -48,7 +50,12 @@ def block_md(b: Block) -> str:
         fence = "````" if "```" in b.text else "```"
         return f"{fence}\n{b.text}\n{fence}"
     if isinstance(b, Table):
+        if not b.markdown:
+            return f"_{escape_md(b.caption or 'A table')} ({len(b.rows)} rows): see the HTML page._"
         return _table(b)
+    if isinstance(b, Links):
+        return escape_md(b.prefix) + (" " if b.prefix else "") + " ".join(
+            f"[{escape_md(text)}]({href})" for text, href in b.links)
     if isinstance(b, Image):
         return f"_Figure (see report.html): {escape_md(b.caption)}_"
     if isinstance(b, Grid):
@@ -58,6 +65,8 @@ def block_md(b: Block) -> str:
 
 def _table(t: Table) -> str:
     def text(c: Cell | str) -> str:
+        if isinstance(c, Cell) and c.href:
+            return f"[{escape_md(c.text)}]({c.href})"
         return escape_md(c.text if isinstance(c, Cell) else str(c))
 
     lines = [f"**{escape_md(t.caption)}**", ""] if t.caption else []

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import math
 import os
 import re
 import tempfile
@@ -32,7 +33,7 @@ from evaluation.metrics import HOOVER_RATES, MIN_SCORED_PIXELS, TIMING_STAGES, M
 from evaluation.verdicts import Comparison
 from reports import figures
 from reports.colours import CHANGE_COLOURS, CHANGE_LABELS, CLASS_COLOURS, CLASSES
-from reports.document import Cell, Code, Document, GalleryTrial, Grid, Image, Note, Para, Section, Table
+from reports.document import Cell, Code, Document, GalleryTrial, Grid, Image, Links, Note, Para, Section, Table
 from reports.html import render_html
 from reports.markdown import render_markdown
 from reports.regression import (
@@ -370,15 +371,14 @@ def segmentation_section(run: RunData) -> Section:
         else:
             rows.append((Cell(m), *[ci_cell(sec, k) for k in HOOVER_RATES]))
     blocks.append(Table(("method", *HOOVER_HEAD), tuple(rows), caption="Hoover rates (fraction of regions)"))
-    sweeps = {}
-    for m, sec in secs.items():
-        if sec and sec.get("sweep") and not any(sec["sweep"] == other for other in sweeps.values()):
-            sweeps[m] = sec["sweep"]
-    shared = [m for m, sec in secs.items() if sec and m not in sweeps and sec.get("sweep")]
+    sweeps, same_as = distinct_sweeps(secs)
     if sweeps:
-        blocks.append(Image(figures.hoover_sweep_figure(sweeps, core.get("tolerance")),
-                            "Hoover rates against the overlap tolerance T (grey line: the headline T)"
-                            + (f"; {', '.join(shared)} share(s) the core's segmentation" if shared else "") + ".",
+        shared = "; ".join(f"{', '.join(others)} score(s) exactly as {m} (the same regions), drawn once with it"
+                           for m, others in same_as.items() if others)
+        blocks.append(Image(figures.hoover_sweep_figure(sweeps, core.get("tolerance"), same_as),
+                            "Hoover rates against the overlap tolerance T: one panel per rate, one line per distinct "
+                            "segmentation (grey line: the headline T). Look at how fast correct detection falls "
+                            "as T tightens, and what it turns into" + (f"; {shared}" if shared else "") + ".",
                             alt="Hoover metrics vs tolerance"))
     groups = run.summary.get("groups") or {}
     grows = [(Cell(g), *[ci_cell(sec, "segmentation", k) if _get(sec, "segmentation") else
@@ -408,6 +408,24 @@ def segmentation_section(run: RunData) -> Section:
                             caption="Correct detection by truth region size (regions of all images counted "
                                     "together; in brackets, how many)"))
     return Section("segmentation", "Segmentation", blocks)
+
+
+def distinct_sweeps(secs: Mapping[str, Mapping[str, Any] | None]
+                    ) -> tuple[dict[str, Any], dict[str, list[str]]]:
+    """The Hoover sweeps of the methods, each distinct one once: ``(method -> sweep rows, method drawn -> the
+    other methods with exactly the same rows)`` (a peer that reuses the core's segmentation scores as it)."""
+    sweeps: dict[str, Any] = {}
+    same_as: dict[str, list[str]] = {}
+    for m, sec in secs.items():
+        rows = (sec or {}).get("sweep")
+        if not rows:
+            continue
+        first = next((d for d, other in sweeps.items() if other == rows), None)
+        if first is None:
+            sweeps[m], same_as[m] = rows, []
+        else:
+            same_as[first].append(m)
+    return sweeps, same_as
 
 
 def classification_section(run: RunData, table_trial: str | None) -> Section:
@@ -568,6 +586,31 @@ def pose_errors(records: Sequence[Mapping[str, Any]], method: str) -> dict[str, 
     return out
 
 
+def viewing_angle_deg(T_world_sensor: Any) -> float | None:
+    """How far the optical axis (the sensor's z) points below the horizontal, degrees (world z up)."""
+    try:
+        z = float(T_world_sensor[2][2])
+    except (TypeError, IndexError, ValueError):
+        return None
+    return math.degrees(math.asin(max(-1.0, min(1.0, -z))))
+
+
+def pose_points(records: Sequence[Mapping[str, Any]], method: str = "core") -> list[dict[str, Any]]:
+    """Per trial with a pose of ``method``: its group, median range (m), viewing angle (deg), pose errors after
+    ICP and whether the pose was stated ok (for :func:`reports.figures.pose_scatter_figure`)."""
+    out = []
+    for r in records:
+        pose = _get(r, "methods", method, "pose")
+        if not pose or pose.get("rotation_error_deg") is None:
+            continue
+        view = r.get("view") or {}
+        out.append({"trial_id": r.get("trial_id"), "group": str(_get(r, "spec", "group")),
+                    "range_m": view.get("median_range_m"), "angle_deg": viewing_angle_deg(view.get("T_world_sensor")),
+                    "rotation_error_deg": pose.get("rotation_error_deg"),
+                    "translation_error_mm": pose.get("translation_error_mm"), "ok": bool(pose.get("ok"))})
+    return out
+
+
 def pose_section(run: RunData) -> Section:
     methods = run.methods
     secs = {m: _get(run.sections(m), "pose") for m in methods}
@@ -595,13 +638,33 @@ def pose_section(run: RunData) -> Section:
                          ci_cell(sec, "add_mm", "median", digits=1)))
     blocks.append(Table(head, tuple(rows)))
     all_errors = {m: pose_errors(run.ok_records(), m) for m in methods}
-    errors = {m: e for m, e in all_errors.items() if any(e.values())}
+    errors: dict[str, Any] = {}
+    same: dict[str, list[str]] = {}
+    for m, e in all_errors.items():
+        if not any(e.values()):
+            continue
+        twin = next((d for d, other in errors.items() if other == e), None)
+        if twin is None:
+            errors[m], same[m] = e, []
+        else:
+            same[twin].append(m)
     if errors:
-        blocks.append(Image(figures.pose_cdf_figure(errors), "Cumulative distribution of pose errors over trials, "
-                            "before and after ICP (grey line: the 1 deg success threshold). Symmetric-log axes.",
-                            alt="pose error CDF"))
+        shared = "; ".join(f"{', '.join(o)} has exactly the poses of {m} (drawn once)" for m, o in same.items() if o)
+        blocks.append(Image(figures.pose_cdf_figure(errors, same_as=same), "Cumulative distribution of pose errors "
+                            "over trials, before and after ICP (grey line: the 1 deg success threshold; symmetric-log "
+                            "axes). Look for the step where the curves meet 1: the share of trials with gross "
+                            "errors" + (f"; {shared}" if shared else "") + ".", alt="pose error CDF"))
     else:
         blocks.append(Note("No per-trial pose errors in the trial records: no CDF to draw.", "info"))
+    points = pose_points(run.ok_records())
+    if points:
+        groups = list(dict.fromkeys([*(run.summary.get("groups") or {}), *(p["group"] for p in points)]))
+        blocks.append(Image(figures.pose_scatter_figure(points, groups), "The core's pose error after ICP per "
+                            "trial against the trial's median range (left) and its viewing angle (right: how far "
+                            "the optical axis points below the horizontal); crosses: poses the core did not state "
+                            "ok; grey: the success thresholds (1 deg; 1 % of the range). Look for errors that grow "
+                            "with range or at grazing views, and for dots above the lines (confident and wrong).",
+                            alt="pose error vs range and viewing angle"))
     grows = [(Cell(g), ci_cell(sec, "pose", "success_rate") if _get(sec, "pose") else Cell(NOT_BUILT, "missing"),
               ci_cell(sec, "pose", "rotation_error_deg", "median"),
               ci_cell(sec, "pose", "translation_error_mm", "median", digits=1))
@@ -704,29 +767,103 @@ def sweeps_section(run: RunData) -> Section | None:
     return Section("sweeps", "Parameter sweeps", blocks)
 
 
+REST = "evaluation + overhead"
+METHOD_STAGES = tuple(st for st in STAGES if st not in ("sensor", "total"))
+
+
+def trial_time_budget(record: Mapping[str, Any]) -> dict[str, Any] | None:
+    """Where one trial's time went, in seconds: ``{sensor, methods: {method: {stage: s}}, oracles, rest, total}``.
+
+    ``rest`` is the trial record's ``timing_s.total`` minus every timed stage (the sensor, each method's own
+    stages, the oracles' re-runs): scoring against the truth (Hoover, classification, pose and change
+    metrics, observability casts) and overhead. None for a record without a total.
+    """
+    t = record.get("timing_s") or {}
+    total = t.get("total")
+    if not isinstance(total, int | float):
+        return None
+    methods = {m: {st: float(v) for st in METHOD_STAGES if isinstance(v := (sec.get("timing_s") or {}).get(st),
+                                                                       int | float)}
+               for m, sec in (record.get("methods") or {}).items() if isinstance(sec, Mapping)}
+    oracles = sum(float(v) for o in (record.get("oracles") or {}).values() if isinstance(o, Mapping)
+                  for v in (o.get("timing_s") or {}).values() if isinstance(v, int | float))
+    sensor = float(t.get("sensor") or 0.0)
+    rest = float(total) - sensor - sum(sum(st.values()) for st in methods.values()) - oracles
+    return {"sensor": sensor, "methods": methods, "oracles": oracles, "rest": rest, "total": float(total),
+            "n_trials": 1}
+
+
+def time_budget(records: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None:
+    """The mean of :func:`trial_time_budget` over the trials that have one (means add up: the parts sum to the
+    mean total); None when no trial has a total."""
+    budgets = [b for r in records if (b := trial_time_budget(r)) is not None]
+    if not budgets:
+        return None
+    n = len(budgets)
+    methods: dict[str, dict[str, float]] = {}
+    for b in budgets:
+        for m, st in b["methods"].items():
+            into = methods.setdefault(m, {})
+            for k, v in st.items():
+                into[k] = into.get(k, 0.0) + v / n
+    return {"sensor": sum(b["sensor"] for b in budgets) / n, "methods": methods,
+            "oracles": sum(b["oracles"] for b in budgets) / n, "rest": sum(b["rest"] for b in budgets) / n,
+            "total": sum(b["total"] for b in budgets) / n, "n_trials": n}
+
+
+def _quantiles(values: Sequence[float]) -> dict[str, float] | None:
+    import numpy as np
+
+    v = [x for x in values if isinstance(x, int | float)]
+    return {"median": float(np.median(v)), "p90": float(np.percentile(v, 90))} if v else None
+
+
 def timing_section(run: RunData) -> Section:
     methods = run.methods
     timings = {m: _get(run.sections(m), "timing_s") for m in methods}
     timings = {m: t for m, t in timings.items() if t}
     if not timings:
         return Section("timing", "Timing", [Note("No timing in summary.json.", "missing")])
-    head = ["stage"] + [f"{m} median (s)" for m in timings] + [f"{m} p90 (s)" for m in timings]
+    ok = run.ok_records()
+    rest = _quantiles([b["rest"] for r in ok if (b := trial_time_budget(r)) is not None])
     rows = []
-    for stage in STAGES:
+    for stage in (*STAGES[:-1], REST, STAGES[-1]):
         cells = [Cell(stage)]
         for k in ("median", "p90"):
-            for t in timings.values():
-                v = t.get(stage)
-                cells.append(Cell(fmt(v.get(k), 3), "num") if v else Cell(NOT_BUILT if stage in ("matching", "icp",
-                                                                                                   "change")
-                                                                          else "n/a", "missing"))
+            for m, t in timings.items():
+                v = rest if stage == REST else t.get(stage)
+                if v:
+                    cells.append(Cell(fmt(v.get(k), 3), "num"))
+                elif m != "core" and stage in METHOD_STAGES:
+                    cells.append(Cell("the core's", "na"))  # it reused the core's result: timed once, there
+                else:
+                    cells.append(Cell("n/a", "na"))
         rows.append(tuple(cells[:1] + _interleave(cells[1:], len(timings))))
     head = ["stage"] + [f"{m} {k} (s)" for m in timings for k in ("median", "p90")]
-    blocks: list[Any] = [Para("Seconds per trial. sensor and total are per trial (shared by the methods); the other "
-                              "stages per method (a method that reuses the core's segmentation shows none)."),
-                         Table(tuple(head), tuple(rows))]
-    blocks.append(Image(figures.timing_figure(timings), "Median time per stage (bars) and 90th percentile "
-                        "(whiskers).", alt="stage times"))
+    blocks: list[Any] = [Para("Seconds per trial. sensor (viewpoint search and scan), evaluation + overhead and total "
+                              "are per trial (shared by the methods); the other stages per method. A method that "
+                              "reuses a stage of the core (its segmentation, its pose) shows 'the core's': that "
+                              "time is counted once, in the core's column. evaluation + overhead is the trial's "
+                              "total minus every timed stage: scoring each method against the truth, and the "
+                              "runner's bookkeeping."),
+                         Table(tuple(head), tuple(rows), id="timing")]
+    budget = time_budget(ok)
+    if budget is not None:
+        blocks.append(Image(figures.time_budget_figure(budget), "The whole trial accounted for (means, so the parts "
+                            "add up to the mean total): sensor, each method's own stages, the oracles and "
+                            "evaluation + overhead (total minus the timed stages); below, each method by stage. "
+                            "Look for the part that dominates.", alt="time budget of a trial"))
+    blocks.append(Image(figures.timing_figure(timings), "Median time per stage and method (bars) with the 90th "
+                        "percentile (whiskers); the total is in the budget beside it.", alt="stage times"))
+    times = [r.get("timing_s") or {} for r in ok]
+    isolation = [t["isolated"] - t["total"] for t in times
+                 if isinstance(t.get("isolated"), int | float) and isinstance(t.get("total"), int | float)]
+    outside = [(name, q) for name, q in (
+        ("scene preparation (before the trial, cached per scene)", _quantiles([t.get("prepare") for t in times])),
+        ("process isolation (fork and transfer, around the trial)", _quantiles(isolation))) if q]
+    if outside:
+        blocks.append(Para("Outside the trial's total: " + "; ".join(
+            f"{name}: median {q['median']:.3f} s, p90 {q['p90']:.3f} s" for name, q in outside) + "."))
     rinfo = run.summary.get("run") or {}
     if rinfo:
         blocks.append(Para(f"Whole run: {fmt(rinfo.get('wall_s'), 1, 's')} wall time on "
@@ -796,7 +933,125 @@ def oracles_section(run: RunData) -> Section | None:
     return Section("oracles", "Stage oracles", blocks)
 
 
-def gallery_section(gallery: Sequence[GalleryTrial] | None) -> Section:
+TRIAL_PAGES_DIR = "trials_html"  # the per-trial pages of ``harness report --trials``, beside report.html
+
+
+def trial_page_name(trial_id: str) -> str:
+    """The file name of a trial's page in :data:`TRIAL_PAGES_DIR` (the id itself: ids are file-name safe)."""
+    return f"{trial_id}.html"
+
+
+def find_trial_pages(root: Path, trial_ids: Sequence[str]) -> dict[str, str]:
+    """trial id -> the href (relative to ``report.html``) of the trial's page, for the pages that exist:
+    ``trials_html/<id>.html`` (``harness report --trials``), else ``show/<id>/trial.html`` (``harness show``)."""
+    out = {}
+    for tid in trial_ids:
+        for rel in (f"{TRIAL_PAGES_DIR}/{trial_page_name(tid)}", f"show/{tid}/trial.html"):
+            if (root / rel).is_file():
+                out[tid] = rel
+                break
+    return out
+
+
+def pose_verdict(pose: Mapping[str, Any] | None) -> tuple[str, str]:
+    """A pose record in words and a cell style: ``right`` (stated ok and within the success thresholds),
+    ``WRONG, stated ok`` (a confident wrong answer), or ``not ok: <why>`` (with ``, was right`` when the
+    withheld pose was within the thresholds)."""
+    if not pose:
+        return "no pose", "na"
+    if pose.get("ok"):
+        return ("right", "good") if pose.get("success") else ("WRONG, stated ok", "bad")
+    why = str(pose.get("reason") or "no reason given")
+    short = why.split(";")[0].split(":")[0].split("(")[0].strip() or why
+    return f"not ok: {short}" + (", was right" if pose.get("success") else ""), ""
+
+
+def trial_accuracy(record: Mapping[str, Any], method: str = "core") -> tuple[float | None, int]:
+    """The fraction of a trial's scored patches (:data:`MIN_SCORED_PIXELS` or more) labelled with their truth
+    class, and how many there are (None, 0 without any)."""
+    patches = [p for p in _get(record, "methods", method, "classification", "patches") or []
+               if p.get("n_pixels", 0) >= MIN_SCORED_PIXELS]
+    if not patches:
+        return None, 0
+    return sum(p["truth"] == p["label"] for p in patches) / len(patches), len(patches)
+
+
+def trial_change_f1(record: Mapping[str, Any], method: str = "core") -> float | None:
+    """The trial's change macro-F1 over its features (:func:`evaluation.aggregate.aggregate_change`)."""
+    from evaluation.aggregate import aggregate_change
+
+    chg = _get(record, "methods", method, "change")
+    if not chg or not chg.get("features"):
+        return None
+    return aggregate_change([chg]).get("macro_f1")
+
+
+def _num_cell(x: Any, digits: int = 3) -> Cell:
+    """A number of the trial index (``n/a`` right-aligned and sorted last)."""
+    number = isinstance(x, int | float) and not isinstance(x, bool)
+    return Cell(fmt(x, digits), "num" if number else "num na", sort="" if number else "~")
+
+
+def trial_index_rows(records: Sequence[Mapping[str, Any]], pages: Mapping[str, str], method: str = "core"
+                     ) -> tuple[tuple[Cell, ...], ...]:
+    """One row per trial: id (linked to its page when it exists), group, scene, the trial's score, correct
+    detection, accuracy, pose verdict and errors, change macro-F1, time."""
+    rows = []
+    for r in records:
+        tid = str(r.get("trial_id"))
+        link = Cell(tid, "id", href=pages.get(tid, ""))
+        spec = r.get("spec") or {}
+        head = (link, Cell(str(spec.get("group", ""))), Cell(str(spec.get("scene", ""))))
+        total = (r.get("timing_s") or {}).get("total")
+        if r.get("status") != "ok":
+            rows.append((*head, Cell("failed", "bad", sort="-1"), *[Cell("", "na")] * 6,
+                         Cell(f"failed: {r.get('reason', '')}", "bad"), _num_cell(total, 2)))
+            continue
+        score, _ = trial_score(r, method)
+        acc, n = trial_accuracy(r, method)
+        pose = _get(r, "methods", method, "pose")
+        verdict, style = pose_verdict(pose)
+        rows.append((*head, _num_cell(score, 2),
+                     _num_cell(_get(r, "methods", method, "segmentation", "correct_detection_rate")),
+                     Cell(f"{fmt(acc)} ({n})" if acc is not None else "n/a", "num" if acc is not None else "num na",
+                          sort=f"{acc:.6f}" if acc is not None else "~"),
+                     Cell(verdict, style),
+                     _num_cell((pose or {}).get("rotation_error_deg"), 2),
+                     _num_cell((pose or {}).get("translation_error_mm"), 1),
+                     _num_cell(trial_change_f1(r, method)), Cell("", "na"), _num_cell(total, 2)))
+    return tuple(rows)
+
+
+TRIAL_INDEX_HEADER = ("trial", "group", "scene", "score", "correct detection", "accuracy (patches)", "pose",
+                      "rot. error (deg)", "trans. error (mm)", "change macro-F1", "note", "time (s)")
+
+
+def trials_section(run: RunData, pages: Mapping[str, str]) -> Section:
+    """Every trial of the run in one sortable table, linked to the trial pages that exist."""
+    records = run.records
+    n_linked = sum(1 for r in records if str(r.get("trial_id")) in pages)
+    rows = trial_index_rows(records, pages)
+    # the note column only says something for failed trials: leave it out when none failed
+    keep = [i for i, h in enumerate(TRIAL_INDEX_HEADER) if h != "note" or any(r[i].text for r in rows)]
+    header = tuple(TRIAL_INDEX_HEADER[i] for i in keep)
+    rows = tuple(tuple(r[i] for i in keep) for r in rows)
+    root = str(run.root)
+    blocks: list[Any] = [
+        Para(f"All {len(records)} trials, in the run's order; click a column title to sort by it (score: the "
+             "gallery's ranking, the mean of the core's correct detection, accuracy, pose success and change "
+             "labels right; lower is worse). The figures are the core's. A trial links to its page (every "
+             "picture, its patches, pose and changes per method) when the page has been written: "
+             f"{n_linked} of {len(records)} here. To write the others:"),
+        Code(f"harness show {root} TRIAL_ID              # one trial: {root}/show/TRIAL_ID/trial.html\n"
+             f"harness report {root} --trials all        # every trial: {root}/{TRIAL_PAGES_DIR}/TRIAL_ID.html\n"
+             f"harness report {root} --trials worst:10   # the 10 worst"),
+        Table(header, rows, id="trial-index", sortable=True, markdown=False,
+              caption=f"Trials ({len(records)}), core method"),
+    ]
+    return Section("trials", "Trials", blocks)
+
+
+def gallery_section(gallery: Sequence[GalleryTrial] | None, pages: Mapping[str, str] | None = None) -> Section:
     if gallery is None:
         return Section("gallery", "Gallery", [Note(
             "No gallery in this rendering: 'harness report RUN_DIR' re-runs the worst trials (deterministically) "
@@ -804,14 +1059,18 @@ def gallery_section(gallery: Sequence[GalleryTrial] | None) -> Section:
     if not gallery:
         return Section("gallery", "Gallery", [Note("No successful trial to show.", "info")])
     blocks: list[Any] = [Para(
-        "Selected trials, worst first (the mean of the trial's correct-detection rate, classification accuracy and, "
-        "once built, pose success and change accuracy). Each was re-run from its record (same seeds, same "
-        "image) to draw: the shaded range image, the core's regions (numbered as in the paper's table), its "
-        "classification over the shaded image (red stripes: wrong label), the truth change map and, once built, "
-        "registration before and after ICP and the predicted change map.")]
+        "Selected trials, worst first (the mean of the trial's correct-detection rate, classification accuracy, "
+        "pose success and change accuracy). Each was re-run from its record (same seeds, same image) to draw: the "
+        "range image and its shading, the H-K curvature classes, the truth surfaces and the core's regions in "
+        "the truth's colours (numbered as in the paper's table), its classification (red stripes: wrong label), "
+        "the truth and predicted change maps, the registration before and after ICP and the scene in 3D. Every "
+        "other trial is in the trial index above.")]
     subs = []
     for g in gallery:
         sb: list[Any] = [Para(f"Group {g.group}. {g.why}")]
+        if pages and g.trial_id in pages:
+            sb.append(Links(((f"the page of {g.trial_id}: its patches, pose and changes per method",
+                              pages[g.trial_id]),)))
         if g.panels:
             sb.append(Grid(tuple(g.panels)))
         sb += [Note(n, "missing" if NOT_BUILT in n else "info") for n in g.notes]
@@ -919,8 +1178,10 @@ def failures_section(run: RunData) -> Section:
 # -- the document and the files -----------------------------------------------------------------------------
 def build_document(run: RunData, baseline: Mapping[str, Any] | None = None, baseline_name: str = "",
                    gallery: Sequence[GalleryTrial] | None = None,
-                   comparison: Comparison | None = None) -> Document:
-    """The report of ``run`` as a document tree (see :mod:`reports.document`)."""
+                   comparison: Comparison | None = None, pages: Mapping[str, str] | None = None) -> Document:
+    """The report of ``run`` as a document tree (see :mod:`reports.document`); ``pages``: trial id -> href of
+    the trial pages that exist (:func:`find_trial_pages`), linked from the trial index and the gallery."""
+    pages = pages or {}
     s = run.summary
     when = _dt.datetime.fromtimestamp((run.root / "summary.json").stat().st_mtime, _dt.UTC)
     subtitle = (f"suite {s.get('suite')} - {s.get('n_trials', 0)} trials, {s.get('n_failed', 0)} failed - "
@@ -934,7 +1195,8 @@ def build_document(run: RunData, baseline: Mapping[str, Any] | None = None, base
     for extra in (methods_section(run), oracles_section(run)):
         if extra is not None:
             sections.append(extra)
-    sections.append(gallery_section(gallery))
+    sections.append(trials_section(run, pages))
+    sections.append(gallery_section(gallery, pages))
     if baseline is not None:
         sections.append(regression_section(run, baseline, baseline_name, comparison))
     sections.append(failures_section(run))
@@ -972,13 +1234,15 @@ def render_report(run_dir: str | Path, baseline_dir: str | Path | None = None,
     """
     run = load_run(run_dir)
     base = load_baseline_summary(baseline_dir) if baseline_dir is not None else None
-    doc = build_document(run, base, str(baseline_dir or ""), gallery, comparison)
+    pages = find_trial_pages(run.root, [str(r.get("trial_id")) for r in run.records])
+    doc = build_document(run, base, str(baseline_dir or ""), gallery, comparison, pages)
     html_path, md_path = run.root / "report.html", run.root / "report.md"
     _write_atomic(html_path, render_html(doc))
     _write_atomic(md_path, render_markdown(doc))
     return html_path, md_path
 
 
-def image(png: bytes, caption: str, alt: str = "", width_px: int = 340) -> Image:
-    """A gallery panel (convenience for callers building :class:`GalleryTrial` s)."""
-    return Image(png, caption, alt or caption, width_px)
+def image(png: bytes, caption: str, alt: str = "", width_px: int = 660, span: int = 1) -> Image:
+    """A gallery panel (convenience for callers building :class:`GalleryTrial` s); ``span`` 2: a wide picture
+    that takes a whole row."""
+    return Image(png, caption, alt or caption, width_px, span)

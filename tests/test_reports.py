@@ -1,18 +1,17 @@
 """The evaluation report: every section on hand-made runs (null and present pose/change, sweeps, peers,
-baselines), escaping and self-containment, figures, the gallery helpers, and the page as a person sees it in
-headless Chromium (a hand-made report always; the smoke suite's report in the slow test)."""
+baselines), escaping and self-containment, figures, the gallery helpers, the trial index and its links, and the
+page as a person sees it in headless Chromium at 1400 px (a hand-made report always; the smoke suite's report in
+the slow test): no horizontal overflow, every figure captioned, every local link resolving, a screenshot."""
 
 from __future__ import annotations
 
 import base64
 import json
 import re
-import shutil
-import subprocess
-import tempfile
 from pathlib import Path
 from types import SimpleNamespace
 
+import _chromium  # tests/ is on sys.path under pytest's default import mode
 import numpy as np
 import pytest
 
@@ -20,17 +19,24 @@ from harness.summary import summarise
 from reports import figures
 from reports.colours import CHANGE_LABELS, CLASSES, method_colour
 from reports.document import GalleryTrial, Image, Table
+from reports.html import SORT_SCRIPT
 from reports.markdown import escape_md, render_markdown
 from reports.regression import NOT_BUILT, headline_deltas, lookup
 from reports.render import (
+    TRIAL_PAGES_DIR,
     build_document,
+    distinct_sweeps,
     load_run,
     paper_table_rows,
     parse_sweep_group,
+    pose_verdict,
     render_report,
+    time_budget,
+    trial_page_name,
     trial_score,
     worst_trials,
 )
+from reports.trial_page import write_trial_page
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 RATES = ("correct_detection_rate", "over_rate", "under_rate", "missed_rate", "noise_rate")
@@ -143,7 +149,7 @@ PEERS = ("core", "paper", "fpfh_ransac")
 
 def gallery() -> list[GalleryTrial]:
     return [GalleryTrial("mockup-mockup_laser-v1", "mockup/mockup_laser", "score 0.40: worst",
-                         (Image(tiny_png(), "Cosine-shaded range image", width_px=340),),
+                         (Image(tiny_png(), "Cosine-shaded range image"),),
                          ("Registration before and after ICP: not built yet (pose is null in the record).",))]
 
 
@@ -155,11 +161,18 @@ def null_report(tmp_path_factory):
     return run, html_path.read_text(), md_path.read_text()
 
 
+PAGED = "mockup-mockup_laser-v1"  # the trial of the hand-made full report that has a page
+
+
 @pytest.fixture(scope="module")
 def full_report(tmp_path_factory):
-    """Every stage present, a peer method, a failed trial and a gallery, rendered once: (run_dir, html, md)."""
+    """Every stage present, a peer method, a failed trial, a gallery and one trial page, rendered once:
+    (run_dir, html, md)."""
     records = make_records(pose=True, change=True, methods=PEERS, fail_one=True)
     run = write_run(tmp_path_factory.mktemp("full") / "run", records, methods=PEERS)
+    entry = gallery()[0]
+    write_trial_page(run / TRIAL_PAGES_DIR / trial_page_name(PAGED), load_run(run),
+                     next(r for r in records if r["trial_id"] == PAGED), entry, link_report=True)
     html_path, md_path = render_report(run, gallery=gallery())
     return run, html_path.read_text(), md_path.read_text()
 
@@ -320,7 +333,7 @@ def test_text_is_escaped(tmp_path):
     evil = '<script>alert("x")</script>|*'
     run = write_run(tmp_path / "run", make_records(pose=False, change=False), suite=evil)
     html, md = (p.read_text() for p in render_report(run))
-    assert "<script>" not in html and "&lt;script&gt;" in html
+    assert "<script>alert" not in html and "&lt;script&gt;" in html
     prose = re.sub(r"```.*?```", "", md, flags=re.S)  # code blocks show text verbatim, and safely
     assert "<script>" not in prose and "\\<script\\>" in prose and escape_md("a|b") == "a\\|b"
     table = Table(("a|b",), (("c|d",),))
@@ -331,7 +344,9 @@ def test_text_is_escaped(tmp_path):
 def test_html_is_self_contained(full_report):
     _, html, _ = full_report
     assert not re.search(r'(src|href)="(https?:)?//', html)
-    assert "<script" not in html and "@import" not in html and "url(" not in html
+    assert "@import" not in html and "url(" not in html
+    # the only script: the inline lines that sort the trial index (no source, nothing fetched)
+    assert re.findall(r"<script[^>]*>", html) == ["<script>"] and SORT_SCRIPT in html
     srcs = re.findall(r'<img src="data:image/png;base64,([A-Za-z0-9+/=]+)"', html)
     assert len(srcs) >= 6 and all(base64.b64decode(s)[:8] == PNG_MAGIC for s in srcs)
     assert len(re.findall("<img ", html)) == len(srcs)
@@ -373,6 +388,18 @@ FIGURES = {
                                                      np.eye(30, 40, dtype=bool)),
     "change_map": lambda: figures.change_picture(np.full((30, 40), np.nan), np.full((30, 40), -1), "none"),
     "registration": lambda: figures.registration_picture(None, np.full((30, 40), 0.001), "after only"),
+    "range": lambda: figures.range_picture(np.where(np.eye(30, 40) > 0, np.nan,
+                                                    np.linspace(1, 3, 1200).reshape(30, 40))),
+    "hk": lambda: figures.hk_picture(np.arange(30 * 40).reshape(30, 40) % 5, np.eye(30, 40)),
+    "classes": lambda: figures.class_picture(np.arange(30 * 40).reshape(30, 40) % 6 - 1, "c", [(5.0, 5.0, "3")]),
+    "time_budget": lambda: figures.time_budget_figure({"sensor": 0.5, "oracles": 0.0, "rest": 0.3, "total": 1.4,
+                                                       "n_trials": 4, "methods": {"core": {"segmentation": 0.4,
+                                                                                           "icp": 0.1},
+                                                                                  "paper": {"matching": 0.1}}}),
+    "pose_scatter": lambda: figures.pose_scatter_figure(
+        [{"group": g, "range_m": 1.0 + i, "angle_deg": 10.0 * i, "rotation_error_deg": 0.1 * i or None,
+          "translation_error_mm": 2.0 * i, "ok": i % 2 == 0} for i, g in enumerate(["a/x", "b/y", "a/x"])],
+        ["a/x", "b/y"]),
 }
 
 
@@ -423,51 +450,103 @@ def test_registration_residuals_from_recorded_poses():
 
 
 # -- in a browser -------------------------------------------------------------------------------------------
-CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--hide-scrollbars")
-
-
-def chromium() -> str:
-    exe = shutil.which("chromium") or shutil.which("chromium-browser")
-    if exe is None:
-        pytest.skip("headless Chromium is missing: install Debian's 'chromium' (apt-get install -y chromium, "
-                    "or scripts/system-deps.sh --browser) to run the report screenshot tests")
-    return exe
-
-
-def browse(html_path: Path, screenshot: Path, height: int = 2400) -> str:
-    """Screenshot the page and return its DOM as Chromium parsed it (a fresh profile for each call)."""
-    exe = chromium()
-    url = html_path.resolve().as_uri()
-    with tempfile.TemporaryDirectory() as profile:
-        subprocess.run([exe, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", f"--window-size=1280,{height}",
-                        f"--screenshot={screenshot}", url], check=True, capture_output=True, timeout=120)
-    with tempfile.TemporaryDirectory() as profile:
-        dom = subprocess.run([exe, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "--dump-dom", url],
-                             check=True, capture_output=True, text=True, timeout=120).stdout
-    return dom
-
-
-def check_page(dom: str, screenshot: Path, min_images: int) -> None:
+def check_page(html_path: Path, screenshot: Path, min_images: int) -> dict:
+    """The page at 1400 px: the layout checks of :func:`_chromium.check_layout` (no horizontal overflow, every
+    figure captioned, every local link resolving), the headline table present, and a screenshot that is not
+    blank, written to ``screenshot`` (its path printed for the CI log)."""
     from matplotlib.image import imread
 
+    m = _chromium.check_layout(html_path, min_figures=min_images)
+    dom = _chromium.dump_dom(html_path)
     assert re.search(r'<table id="headline">.*?<td', dom, re.S), "the headline table is not in the page"
-    imgs = re.findall(r'<img src="data:image/png;base64,', dom)
-    assert len(imgs) >= min_images, f"{len(imgs)} figures in the page"
+    _chromium.screenshot(html_path, screenshot, height=4000)
+    print(f"screenshot of {html_path}: {screenshot}")
     shot = imread(screenshot)[..., :3]
-    assert shot.shape[0] >= 1000 and shot.shape[1] == 1280
+    assert shot.shape[0] >= 1000 and shot.shape[1] == _chromium.WIDTH
     not_white = np.mean(np.any(shot < 0.9, axis=-1))
     assert not_white > 0.03, f"the screenshot looks blank ({not_white:.1%} non-white pixels)"
     assert shot.std() > 0.05
+    return m
 
 
 def test_report_in_headless_chromium(full_report, tmp_path):
-    run, _, _ = full_report
-    shot = tmp_path / "report.png"
-    dom = browse(run / "report.html", shot, height=4000)
-    check_page(dom, shot, min_images=8)
-    assert "not built yet" not in re.search(r'<table id="headline">.*?</table>', dom, re.S).group(0)
+    run, html, _ = full_report
+    m = check_page(run / "report.html", tmp_path / "report.png", min_images=8)
+    assert "not built yet" not in re.search(r'<table id="headline">.*?</table>', html, re.S).group(0)
+    # the trial index links the one trial that has a page, and the page exists (check_page: every link resolves)
+    pages = [h for h in m["hrefs"] if h.startswith(TRIAL_PAGES_DIR + "/")]
+    assert set(pages) == {f"{TRIAL_PAGES_DIR}/{trial_page_name(PAGED)}"}
+    # its headers sort it: the worst trial first, then the best
+    scores = {r["trial_id"]: trial_score(r)[0] for r in load_run(run).records}  # a failed trial scores -1
+    assert m["sorted_firsts"] == [min(scores, key=scores.get), max(scores, key=scores.get)]
+    # figures stand two to a row at their natural width in a 1400 px window (none shown smaller than 600 px)
+    assert all(shown >= min(natural, 600) for natural, shown in m["images"]), m["images"]
+    # the trial page: the same checks, and its link back to the report resolves
+    page = run / TRIAL_PAGES_DIR / trial_page_name(PAGED)
+    pm = _chromium.check_layout(page, min_figures=1)
+    assert "../report.html" in pm["hrefs"]
+
+
+def test_regression_tables_fit_with_their_full_verdicts_in_headless_chromium(tmp_path):
+    from harness.compare import compare_dirs
+    from harness.compare import load_run as load_compare_run
+
+    base = write_run(tmp_path / "base", make_records(pose=True, change=True, methods=PEERS), methods=PEERS)
+    records = make_records(pose=True, change=True, methods=PEERS)
+    for r in records:
+        r["methods"]["core"]["classification"]["patches"][0]["label"] = "OTH"
+    cand = write_run(tmp_path / "cand", records, methods=PEERS)
+    html = render_report(cand, base, comparison=compare_dirs(load_compare_run(base), load_compare_run(cand)))[0]
+    _chromium.check_layout(html, min_figures=4)  # no table of the regression section runs off the page
+    dom = _chromium.dump_dom(html)
+    cells = re.findall(r'<td class="bad">([^<]+)</td>', re.search(r'<section id="regression">.*?</section>', dom,
+                                                                   re.S).group(0))
+    assert "REGRESSION (tolerance alone)" in cells  # the whole word, not cut at the edge of a scrolled table
+
+
+def test_trial_index_lists_every_trial_and_links_only_pages_that_exist(full_report):
+    run, html, md = full_report
+    table = re.search(r'<table id="trial-index" class="sortable">.*?</table>', html, re.S).group(0)
+    records = load_run(run).records
+    for r in records:
+        assert f">{r['trial_id']}<" in table
+    links = re.findall(r'<a href="([^"]+)">', table)
+    assert links == [f"{TRIAL_PAGES_DIR}/{trial_page_name(PAGED)}"]
+    assert f"harness report {run} --trials all" in html  # the command that writes the others
+    assert "failed: no acceptable viewpoint" in table  # a failed trial is listed, with why
+    assert "Trials (" in md and "see the HTML page" in md  # the long table is left out of the Markdown
+    assert pose_verdict({"ok": True, "success": False}) == ("WRONG, stated ok", "bad")
+    assert pose_verdict({"ok": False, "success": True, "reason": "ambiguous: another pose agrees 0.9 vs 0.8"}
+                        )[0] == "not ok: ambiguous, was right"
+
+
+def test_the_report_is_deterministic(full_report):
+    run, html, md = full_report
+    again_html, again_md = (p.read_text() for p in render_report(run, gallery=gallery()))
+    assert again_html == html and again_md == md
+
+
+def test_time_budget_accounts_for_the_whole_trial(full_report):
+    run, html, _ = full_report
+    records = [{**r, "timing_s": {**r["timing_s"], "total": 12.0}} for r in load_run(run).ok_records()]
+    records[0]["oracles"] = {"pose": {"timing_s": {"change": 0.25, "icp": None}}}
+    budget = time_budget(records)
+    parts = budget["sensor"] + budget["oracles"] + budget["rest"] + sum(
+        sum(st.values()) for st in budget["methods"].values())
+    assert parts == pytest.approx(budget["total"]) == 12.0
+    # sensor 2, core and paper 2.1 s each (k = 0) or 3.1 s (k = 1), the peer 2.1 / 3.1, oracles 0.25 / 2
+    assert budget["oracles"] == pytest.approx(0.125) and budget["rest"] == pytest.approx(12 - 2 - 3 * 2.6 - 0.125)
+    assert "time budget of a trial" in img_alts(html)
+    table = re.search(r'<table id="timing">.*?</table>', html, re.S).group(0)
+    assert "evaluation + overhead" in table and "not built yet" not in table
+
+
+def test_hoover_plot_draws_each_distinct_segmentation_once():
+    same = _segmentation(0.6)["sweep"]
+    sweeps, same_as = distinct_sweeps({"core": {"sweep": same}, "paper": {"sweep": _segmentation(0.5)["sweep"]},
+                                       "diff_change": {"sweep": list(same)}, "none": None})
+    assert list(sweeps) == ["core", "paper"] and same_as == {"core": ["diff_change"], "paper": []}
+    assert figures.hoover_sweep_figure(sweeps, 0.8, same_as)[:8] == PNG_MAGIC
 
 
 @pytest.mark.slow
@@ -475,8 +554,7 @@ def test_smoke_suite_report_in_headless_chromium(tmp_path):
     """The smoke suite end to end: bench (report and gallery included), then a report against itself."""
     from harness.cli import main
 
-    exe = chromium()
-    assert exe
+    assert _chromium.chromium()
     out = tmp_path / "smoke"
     assert main(["bench", "--suite", "smoke", "--out", str(out), "--workers", "2", "--progress", "log"]) == 0
     html = (out / "report.html").read_text()
@@ -485,8 +563,10 @@ def test_smoke_suite_report_in_headless_chromium(tmp_path):
     assert "not built yet" not in headline  # every stage has landed: no section is null
     assert "Cosine-shaded range image (black: no return)." in html  # the gallery was re-run without --artifacts
     assert "differ from the recorded ones" not in html  # ... and reproduced the recorded patches
-    shot = tmp_path / "smoke.png"
-    check_page(browse(out / "report.html", shot, height=2400), shot, min_images=10)
+    m = check_page(out / "report.html", tmp_path / "smoke.png", min_images=10)
+    pages = sorted(p.name for p in (out / TRIAL_PAGES_DIR).glob("*.html"))  # the gallery's trials have pages
+    assert pages and all(f"{TRIAL_PAGES_DIR}/{name}" in m["hrefs"] for name in pages)
+    _chromium.check_layout(out / TRIAL_PAGES_DIR / pages[0], min_figures=8)
     assert main(["report", str(out), "--baseline", str(out), "--gallery", "1"]) == 0
     html = (out / "report.html").read_text()
     assert 'id="regression"' in html and "No regression" in html

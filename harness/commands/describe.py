@@ -6,9 +6,11 @@ runs segmentation and classification (:func:`recognition.describe.describe`) and
 - ``description.json``: the source (how the file was read), timings, and every patch with its label,
   probabilities, plausibilities, fitted parameters and their sigmas, invariants (schema
   ``harness.describe/1``; metres and radians, as inside the core);
-- ``table.md``: the paper-style table (region, P(cyl), P(sphere), P(cone), class) plus size and main parameter;
-- ``shaded.png`` (cosine-shaded range image), ``regions.png`` (patches coloured by id, black = none) and
-  ``classes.png`` (pixels coloured by their patch's class).
+- ``table.md``: the paper-style table (region, P(cyl), P(sphere), P(cone), class: the paper's plausibilities)
+  plus the class probability vector P(PLAN) ... P(OTH), size and main parameter;
+- ``shaded.png`` (cosine-shaded range image), ``regions.png`` (patches coloured by id, numbered with the region
+  ids of ``table.md``; black = none) and ``classes.png`` (pixels coloured by their patch's class, with the class
+  legend). The colours are the report's (:mod:`reports.colours`: one palette for both).
 
 With ``--model SCENE`` (an a priori scene YAML, world frame), the scan is also localised against the model
 (:func:`recognition.localisation.localise`: matching, pose, verification, ICP; a pose prior saved in an ``.npz`` scan
@@ -31,20 +33,21 @@ from pathlib import Path
 
 import numpy as np
 
+from evaluation.metrics import MIN_SCORED_PIXELS
 from recognition.describe import CLASSIFIERS, DescribeParams, SceneDescription, describe
+from reports.colours import CLASS_COLOURS  # the report's palette, the same object (one colour language)
 from scenes.model import SceneModel
 from scenes.vocabulary import CLASSES
 from sensors.config import preset_names
-from sensors.io import save_labels_png, save_shaded_png
+from sensors.io import save_shaded_png
 from sensors.readers import FORMATS, LoadedScan, load_scan
 
 NAME = "describe"
 HELP = "describe a real range scan (PCD, PLY, depth PNG, .npz): patches, labels, fits -> JSON, Markdown, PNGs"
 SCHEMA = "harness.describe/1"
 
-#: class colours of ``classes.png`` (RGB in [0, 1]).
-CLASS_COLOURS = {"PLAN": (0.55, 0.55, 0.55), "CYL": (0.12, 0.47, 0.71), "SPH": (0.84, 0.15, 0.16),
-                 "CONE": (1.0, 0.5, 0.05), "OTH": (0.58, 0.4, 0.74)}
+#: Regions of this many pixels or more are numbered in ``regions.png`` (the report's scoring floor).
+NUMBERED_MIN_PIXELS = MIN_SCORED_PIXELS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -99,8 +102,8 @@ def run(args: argparse.Namespace) -> int:
     (out / "table.md").write_text(paper_table(desc, title=f"{args.file.name} ({args.classifier} classifier)"),
                                   encoding="utf-8")
     save_shaded_png(out / "shaded.png", loaded.scan)
-    save_labels_png(out / "regions.png", desc.labels)
-    save_class_png(out / "classes.png", desc)
+    save_region_png(out / "regions.png", desc, title=f"{args.file.name}: regions")
+    save_class_png(out / "classes.png", desc, title=f"{args.file.name}: classes ({args.classifier} classifier)")
     counts = {c: sum(1 for p in desc.patches if p.label == c) for c in CLASSES}
     print(f"{args.file.name}: {loaded.scan.shape[1]}x{loaded.scan.shape[0]}, {loaded.info.n_valid} returns, "
           f"{len(desc.patches)} patches (" + ", ".join(f"{n} {c}" for c, n in counts.items() if n) + "), "
@@ -261,30 +264,52 @@ def _main_parameter(patch) -> str:
 
 
 def paper_table(desc: SceneDescription, title: str = "", min_pixels: int = 0) -> str:
-    """The paper's table of plausibilities as Markdown: region, P(cyl), P(sphere), P(cone), class (and size,
-    main parameter), one row per patch of at least ``min_pixels`` pixels, largest first."""
+    """The paper's table of plausibilities as Markdown: region, P(cyl), P(sphere), P(cone), class, then the
+    class probabilities P(PLAN) ... P(OTH), size and main parameter; one row per patch of at least
+    ``min_pixels`` pixels, largest first. Region numbers are those of ``regions.png``."""
     lines = [f"# {title}", ""] if title else []
-    lines += ["| region | P(cyl) | P(sphere) | P(cone) | class | pixels | parameter |",
-              "|---:|---:|---:|---:|:---|---:|:---|"]
+    lines += ["P(cyl), P(sphere), P(cone): the paper's plausibilities (each in [0, 1], independent); "
+              f"P({'), P('.join(CLASSES)}): the classifier's probability vector over the five classes (sums to 1). "
+              f"regions.png and classes.png number the regions of {NUMBERED_MIN_PIXELS} pixels or more with these "
+              "ids.", "",
+              "| region | P(cyl) | P(sphere) | P(cone) | class | " + " | ".join(f"P({c})" for c in CLASSES)
+              + " | pixels | parameter |",
+              "|---:|---:|---:|---:|:---|" + "---:|" * len(CLASSES) + "---:|:---|"]
     for p in sorted(desc.patches, key=lambda q: -q.n_pixels):
         if p.n_pixels < min_pixels:
             continue
         pl = p.classification.plausibilities
+        probs = p.classification.probabilities or {}
         lines.append(f"| {p.id} | {pl.get('CYL', 0.0):.2f} | {pl.get('SPH', 0.0):.2f} | {pl.get('CONE', 0.0):.2f} | "
-                     f"{p.label} | {p.n_pixels} | {_main_parameter(p)} |")
+                     f"{p.label} | " + " | ".join(f"{probs.get(c, 0.0):.2f}" for c in CLASSES)
+                     + f" | {p.n_pixels} | {_main_parameter(p)} |")
     return "\n".join(lines) + "\n"
 
 
-def save_class_png(path: Path, desc: SceneDescription) -> None:
-    """Pixels coloured by their patch's class (:data:`CLASS_COLOURS`), black where no patch."""
-    from matplotlib.image import imsave
+def _numbers(desc: SceneDescription) -> list[tuple[float, float, str]]:
+    from reports.figures import patch_centres
 
-    cls = desc.class_image()
-    table = np.array([CLASS_COLOURS[c] for c in CLASSES])
-    rgb = np.zeros((*cls.shape, 3))
-    rgb[cls >= 0] = table[cls[cls >= 0]]
-    imsave(path, rgb)
+    return [(x, y, str(i)) for x, y, i in patch_centres(desc.labels, NUMBERED_MIN_PIXELS)]
+
+
+def save_class_png(path: Path, desc: SceneDescription, title: str = "classes") -> None:
+    """Pixels coloured by their patch's class (the report's :data:`reports.colours.CLASS_COLOURS`), black where
+    no patch, with the class legend and the region numbers of ``table.md``."""
+    from reports.figures import class_picture
+
+    Path(path).write_bytes(class_picture(desc.class_image(), title, _numbers(desc)))
+
+
+def save_region_png(path: Path, desc: SceneDescription, title: str = "regions") -> None:
+    """Patches coloured by id (black: none), numbered with the region ids of ``table.md`` (regions of
+    :data:`NUMBERED_MIN_PIXELS` pixels or more)."""
+    from reports.figures import region_picture
+
+    Path(path).write_bytes(region_picture(desc.labels, title, number_min_pixels=NUMBERED_MIN_PIXELS,
+                                          key=f"numbers: the region ids of table.md (regions of "
+                                              f"{NUMBERED_MIN_PIXELS} pixels or more); black: no region"))
 
 
 __all__ = ["NAME", "HELP", "add_arguments", "run", "paper_table", "description_dict", "patch_dict",
-           "primitive_dict", "save_class_png", "localise_and_compare", "pose_dict", "change_dict", "change_table"]
+           "primitive_dict", "save_class_png", "save_region_png", "CLASS_COLOURS",
+           "localise_and_compare", "pose_dict", "change_dict", "change_table"]

@@ -2,7 +2,9 @@
 
 Prints the trial's figures per method (from its record in ``RUN/trials/``) and writes the report's gallery
 pictures of it (the scan simulated again from the record, deterministic: DESIGN 10.14) as PNG files with an
-``index.md`` of their captions, into ``--out`` (default ``RUN/show/TRIAL_ID/``).
+``index.md`` of their captions, and ``trial.html``: the trial's page in the report's look (its figures, pictures,
+patches, pose and changes per method, timing; :mod:`reports.trial_page`), referencing the PNGs beside it, into
+``--out`` (default ``RUN/show/TRIAL_ID/``). The report's trial index links to that page once it exists.
 """
 
 from __future__ import annotations
@@ -79,21 +81,29 @@ def _f(x: Any, digits: int = 3) -> str:
 def run(args: argparse.Namespace) -> int:
     record = load_record(args.run_dir, args.trial_id)
     print("\n".join(trial_figures(record)))
+    from reports.render import load_run, trial_score
+    from reports.trial_page import write_trial_page
+
+    run = load_run(args.run_dir)
+    out = args.out or args.run_dir / "show" / args.trial_id
     if args.no_pictures or record.get("status") != "ok":
+        page = write_trial_page(out / "trial.html", run, record, None)
+        print(f"page -> {page}")
         return 0
     from harness.gallery import draw, rerun
 
-    run_json = json.loads((args.run_dir / "run.json").read_text(encoding="utf-8"))
-    methods = (run_json.get("suite_config") or {}).get("methods") or {"core": {}}
-    out = args.out or args.run_dir / "show" / args.trial_id
+    methods = (run.run.get("suite_config") or {}).get("methods") or {"core": {}}
     out.mkdir(parents=True, exist_ok=True)
-    entry = draw(record, rerun(record, methods, args.run_dir / "cache"), "asked for")
-    index = [f"# {entry.trial_id} ({entry.group})", ""]
+    entry = draw(record, rerun(record, methods, args.run_dir / "cache"), trial_score(record)[1])
+    index = [f"# {entry.trial_id} ({entry.group})", "", "The same pictures with the trial's tables: trial.html.", ""]
+    names = []
     for i, panel in enumerate(entry.panels):
         name = f"{i:02d}-{re.sub(r'[^a-z0-9]+', '-', panel.caption.lower()).strip('-')[:40]}.png"
         (out / name).write_bytes(panel.png)
+        names.append(name)
         index += [f"![{panel.alt or panel.caption}]({name})", "", panel.caption, ""]
     index += [f"- {n}" for n in entry.notes]
     (out / "index.md").write_text("\n".join(index) + "\n", encoding="utf-8")
-    print(f"{len(entry.panels)} pictures -> {out}")
+    page = write_trial_page(out / "trial.html", run, record, entry, image_files=names)
+    print(f"{len(entry.panels)} pictures -> {out}\npage -> {page}")
     return 0
