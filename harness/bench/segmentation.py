@@ -116,6 +116,7 @@ def main(argv: list[str] | None = None) -> int:
                     a.append(v)
             h, w = scan.valid.shape
             frames.append({"trial_id": spec.trial_id, "group": spec.group, "width": w, "height": h, "cpu_s": cpu,
+                           "labels_sha1": hashlib.sha1(seg.labels.tobytes()).hexdigest(),
                            "wall_s": wall, "correct_detection_rate": cd, "correct_detection_rate_described": cd_desc,
                            **({"steps_s": steps} if args.steps else {})})
             print(f"{spec.trial_id}: {w}x{h} process {cpu:.3f} s, wall {wall:.3f} s, correct detection "
