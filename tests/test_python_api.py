@@ -46,7 +46,7 @@ def _fenced(section: str, lang: str) -> list[str]:
 
 
 def test_the_readme_snippet_runs_verbatim(tmp_path, monkeypatch):
-    """The README's Python API snippet, on the scan its "Real scans" commands make (with a 160 x 120 sensor
+    """The README's Python API snippet, on the scan its own commands make (with a 160 x 120 sensor
     instead of the 640 x 480 mock-up laser, to stay fast)."""
     snippet = _fenced(_readme_section("Python API"), "python")[0]
     assert len(snippet.strip().splitlines()) <= 16
@@ -55,7 +55,7 @@ def test_the_readme_snippet_runs_verbatim(tmp_path, monkeypatch):
     for name in ("mockup.yaml", "mockup_perturbation.yaml"):
         shutil.copy(ROOT / "scenes" / "data" / name, tmp_path / "scenes" / "data" / name)
     (tmp_path / "tiny.yaml").write_text(SENSOR)
-    commands = [c for block in _fenced(_readme_section("Real scans"), "sh") for c in block.splitlines()
+    commands = [c for block in _fenced(_readme_section("Python API"), "sh") for c in block.splitlines()
                 if c.startswith(("harness scene perturb", "harness sense pert/"))]
     assert len(commands) == 2, commands
     for command in commands:
