@@ -39,7 +39,8 @@ class Para:
 
 @dataclass(frozen=True)
 class Note:
-    """A highlighted line: ``kind`` is ``missing`` (stage not built yet), ``info``, ``warn``, ``pass`` or ``fail``."""
+    """A highlighted line: ``kind`` is ``missing`` (a stage with no figure), ``info``, ``warn``, ``pass`` or
+    ``fail``."""
 
     text: str
     kind: str = "info"
@@ -108,7 +109,7 @@ class Document:
 
 @dataclass(frozen=True)
 class GalleryTrial:
-    """One trial of the gallery: why it was chosen, its pictures and notes (e.g. a stage not built yet).
+    """One trial of the gallery: why it was chosen, its pictures and notes (e.g. a stage with no figure).
 
     Built by the caller of :func:`reports.render.render_report` (``harness report`` re-runs the trial to draw
     the pictures, DESIGN 10.14) and passed in, so that ``reports`` never runs the simulator itself.

@@ -19,7 +19,7 @@ from evaluation.verdicts import ALL, FAILING, Comparison, FigureVerdict, TrialMo
 
 
 class Missing:
-    """Why a value is absent: its section is null (``not built yet``) or the key is not there (``n/a``)."""
+    """Why a value is absent: its section is null (``no figure``) or the key is not there (``n/a``)."""
 
     def __init__(self, why: str):
         self.why = why
@@ -28,7 +28,7 @@ class Missing:
         return f"Missing({self.why!r})"
 
 
-NOT_BUILT = Missing("not built yet")
+NOT_BUILT = Missing("no figure")
 NOT_AVAILABLE = Missing("n/a")
 
 

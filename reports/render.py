@@ -6,7 +6,7 @@ is shown bare, never with an interval made up here.
 
 :func:`render_report` reads ``summary.json``, ``run.json`` and ``trials/*.json`` (never logs), builds a
 :class:`reports.document.Document` and writes it twice. A stage whose summary section is null is shown as
-"not built yet", never left out and never filled in. The gallery pictures and the regression verdicts come
+"no figure", never left out and never filled in. The gallery pictures and the regression verdicts come
 from the caller (``harness report`` re-runs the gallery trials and hands in ``harness compare``'s
 :class:`evaluation.verdicts.Comparison`), so this package never runs the simulator nor re-implements the
 regression rules. Which figures the headline, per-group, per-method, oracle and regression tables show, with
@@ -52,7 +52,7 @@ STAGES = TIMING_STAGES
 SWEEP_GROUP = re.compile(r"\[([A-Za-z_][A-Za-z0-9_]*)=([^\]]+)\]")
 METHOD_NOTES = {"core": "the recognition core (its model-selection classifier)",
                 "paper": "the core with the paper's literal classifier (plausibilities, 0.2 margin)"}
-NOT_BUILT = "not built yet"
+NOT_BUILT = "no figure"
 
 
 # -- loading ------------------------------------------------------------------------------------------------
@@ -179,9 +179,28 @@ def _slug(text: str) -> str:
     return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or "x"
 
 
-def _not_built(stage: str, methods: Sequence[str]) -> Note:
+def why_no_figure(summary: Mapping[str, Any], section: str) -> str:
+    """Why a stage of a summary has no figure: every trial failed (and the first reason), or nothing to score."""
+    n_ok = summary.get("n_trials", 0) - summary.get("n_failed", 0)
+    if not summary.get("n_trials"):
+        return "no trial ran"
+    if n_ok <= 0:
+        first = (summary.get("failures") or [{}])[0].get("reason", "?")
+        return f"every trial failed: {first}"
+    sec = summary.get(section)
+    if section == "pose":
+        return "no trial constrained 6 DOF" if not (sec or {}).get("n_constrained") else "no pose was scored"
+    if section == "change":
+        return "no trial gave a pose (change detection needs one)"
+    if section == "classification":
+        return f"no patch of >= {(sec or {}).get('min_patch_pixels', MIN_SCORED_PIXELS)} pixels was described"
+    return "no trial scored it"
+
+
+def _not_built(stage: str, methods: Sequence[str], summary: Mapping[str, Any] | None = None) -> Note:
     who = "any method" if len(methods) > 1 else methods[0]
-    return Note(f"{stage.capitalize()} is not built yet: summary.json has {stage}: null for {who}, so there are "
+    why = f" ({why_no_figure(summary, stage)})" if summary is not None else ""
+    return Note(f"{stage.capitalize()} has no figure: summary.json has {stage}: null for {who}{why}, so there are "
                 "no numbers to show.", "missing")
 
 
@@ -357,7 +376,7 @@ def segmentation_section(run: RunData) -> Section:
     methods = run.methods
     secs = {m: _get(run.sections(m), "segmentation") for m in methods}
     if all(v is None for v in secs.values()):
-        return Section("segmentation", "Segmentation", [_not_built("segmentation", methods)])
+        return Section("segmentation", "Segmentation", [_not_built("segmentation", methods, run.summary)])
     core = next(v for v in secs.values() if v is not None)
     blocks: list[Any] = [Para(
         f"Hoover et al. (1996) region metrics at overlap tolerance T = {core.get('tolerance')}, over truth regions "
@@ -432,7 +451,7 @@ def classification_section(run: RunData, table_trial: str | None) -> Section:
     methods = run.methods
     secs = {m: _get(run.sections(m), "classification") for m in methods}
     if all(v is None for v in secs.values()):
-        return Section("classification", "Classification", [_not_built("classification", methods)])
+        return Section("classification", "Classification", [_not_built("classification", methods, run.summary)])
     present = {m: v for m, v in secs.items() if v is not None}
     first = next(iter(present.values()))
     blocks: list[Any] = [Para(
@@ -615,7 +634,7 @@ def pose_section(run: RunData) -> Section:
     methods = run.methods
     secs = {m: _get(run.sections(m), "pose") for m in methods}
     if all(v is None for v in secs.values()):
-        return Section("pose", "Pose", [_not_built("pose", methods)])
+        return Section("pose", "Pose", [_not_built("pose", methods, run.summary)])
     blocks: list[Any] = [Para(
         "Error of the estimated T_world_sensor against the truth (bop_toolkit definitions): rotation "
         "arccos((tr(R_est R_gt') - 1) / 2) in degrees, translation in mm, before (initial, from the matched "
@@ -679,7 +698,7 @@ def change_section(run: RunData) -> Section:
     methods = run.methods
     secs = {m: _get(run.sections(m), "change") for m in methods}
     if all(v is None for v in secs.values()):
-        return Section("change", "Change", [_not_built("change", methods)])
+        return Section("change", "Change", [_not_built("change", methods, run.summary)])
     present = {m: v for m, v in secs.items() if v is not None}
     blocks: list[Any] = [Para(
         "Per label precision, recall and F1 over the features the truth says are observable from the viewpoint; "

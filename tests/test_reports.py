@@ -180,20 +180,20 @@ def full_report(tmp_path_factory):
 def test_null_pose_and_change_say_not_built_yet(null_report):
     _, html, md = null_report
     for text in (html, md):
-        assert "Pose is not built yet" in text
-        assert "Change is not built yet" in text
+        assert "Pose has no figure" in text
+        assert "Change has no figure" in text
         assert "Headline" in text and "Segmentation" in text and "Timing" in text
     alts = img_alts(html)
     assert {"Hoover metrics vs tolerance", "confusion matrix", "reliability diagram", "stage times"} <= set(alts)
     assert "pose error CDF" not in alts and "per-label change F1" not in alts
     assert '<table id="headline">' in html
-    assert html.count("not built yet") >= 4  # headline cells say it too, rather than disappear
+    assert html.count("no figure") >= 4  # headline cells say it too, rather than disappear
     assert 'id="sweeps"' not in html and 'id="oracles"' not in html  # sections that only exist when run
 
 
 def test_present_pose_and_change_are_tabled_and_plotted(full_report):
     run, html, _ = full_report
-    assert "Pose is not built yet" not in html and "Change is not built yet" not in html
+    assert "Pose has no figure" not in html and "Change has no figure" not in html
     alts = img_alts(html)
     assert "pose error CDF" in alts and "per-label change F1" in alts
     summary = json.loads((run / "summary.json").read_text())
@@ -472,7 +472,7 @@ def check_page(html_path: Path, screenshot: Path, min_images: int) -> dict:
 def test_report_in_headless_chromium(full_report, tmp_path):
     run, html, _ = full_report
     m = check_page(run / "report.html", tmp_path / "report.png", min_images=8)
-    assert "not built yet" not in re.search(r'<table id="headline">.*?</table>', html, re.S).group(0)
+    assert "no figure" not in re.search(r'<table id="headline">.*?</table>', html, re.S).group(0)
     # the trial index links the one trial that has a page, and the page exists (check_page: every link resolves)
     pages = [h for h in m["hrefs"] if h.startswith(TRIAL_PAGES_DIR + "/")]
     assert set(pages) == {f"{TRIAL_PAGES_DIR}/{trial_page_name(PAGED)}"}
@@ -538,7 +538,7 @@ def test_time_budget_accounts_for_the_whole_trial(full_report):
     assert budget["oracles"] == pytest.approx(0.125) and budget["rest"] == pytest.approx(12 - 2 - 3 * 2.6 - 0.125)
     assert "time budget of a trial" in img_alts(html)
     table = re.search(r'<table id="timing">.*?</table>', html, re.S).group(0)
-    assert "evaluation + overhead" in table and "not built yet" not in table
+    assert "evaluation + overhead" in table and "no figure" not in table
 
 
 def test_hoover_plot_draws_each_distinct_segmentation_once():
@@ -560,7 +560,7 @@ def test_smoke_suite_report_in_headless_chromium(tmp_path):
     html = (out / "report.html").read_text()
     assert (out / "report.md").read_text().startswith("# Evaluation report: smoke")
     headline = re.search(r'<table id="headline">.*?</table>', html, re.S).group(0)
-    assert "not built yet" not in headline  # every stage has landed: no section is null
+    assert "no figure" not in headline  # every stage has landed: no section is null
     assert "Cosine-shaded range image (black: no return)." in html  # the gallery was re-run without --artifacts
     assert "differ from the recorded ones" not in html  # ... and reproduced the recorded patches
     m = check_page(out / "report.html", tmp_path / "smoke.png", min_images=10)

@@ -153,7 +153,7 @@ def test_a_run_with_a_failed_trial_exits_with_its_code_after_writing_everything(
 
 
 def test_a_stage_with_nothing_to_show_says_why():
-    from harness.commands.bench import why_missing
+    from reports.render import why_no_figure as why_missing
 
     failed = {"n_trials": 2, "n_failed": 2, "failures": [{"trial_id": "t", "reason": "no acceptable viewpoint"}]}
     assert why_missing(failed, "pose") == "every trial failed: no acceptable viewpoint"

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from harness.run import RunOptions, run_suite
 from harness.suite import load_suite, shipped_suites
+from reports.render import why_no_figure
 
 NAME = "bench"
 HELP = "run a benchmark suite (default: the shipped 'default' suite)"
@@ -88,31 +89,12 @@ def headline(summary: dict, out: Path) -> str:
            "pose": pose and pose["success_rate"] is not None and f"success {pose['success_rate']:.3f}",
            "change": chg and chg["macro_f1"] is not None and f"macro-F1 {chg['macro_f1']:.3f}"}
     for k, v in fmt.items():
-        lines.append(f"  {k:15s} {v or why_missing(summary, k)}")
+        lines.append(f"  {k:15s} {v or why_no_figure(summary, k)}")
     t = summary.get("timing_s", {}).get("total")
     if t:
         lines.append(f"  {'time/trial':15s} median {t['median']:.2f} s, p90 {t['p90']:.2f} s")
     lines.append(f"  summary: {out / 'summary.json'}")
     return "\n".join(lines) + ("\n" + json.dumps(summary["failures"][:5]) if summary["failures"] else "")
-
-
-def why_missing(summary: dict, section: str) -> str:
-    """Why a headline figure is absent: every trial failed, or the stage had nothing to score."""
-    n_ok = summary["n_trials"] - summary["n_failed"]
-    if summary["n_trials"] == 0:
-        return "no trial ran"
-    if n_ok == 0:
-        first = summary["failures"][0]["reason"] if summary.get("failures") else "?"
-        return f"every trial failed: {first}"
-    sec = summary.get(section)
-    if section == "pose":
-        n_constrained = (sec or {}).get("n_constrained", 0)
-        return "no trial constrained 6 DOF" if not n_constrained else "no pose was scored"
-    if section == "change":
-        return "no trial gave a pose (change detection needs one)"
-    if section == "classification":
-        return f"no patch of >= {(sec or {}).get('min_patch_pixels', 200)} pixels was described"
-    return "no trial scored it"
 
 
 def trial_list(suite) -> str:
@@ -130,3 +112,4 @@ def trial_list(suite) -> str:
     lines.append(f"suite {suite.name}: {len(suite.trials)} trials, {len({t.scene for t in suite.trials})} scenes; "
                  + "; ".join(f"{g}: {n}" for g, n in groups.items()))
     return "\n".join(lines)
+
