@@ -36,7 +36,7 @@ SEGMENTATION_XFAIL = ("segmentation under-segments this real scan (one patch spa
                       "recognition quality, reported to the recognition owners")
 
 
-def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+def _line_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     c = abs(float(a @ b)) / (np.linalg.norm(a) * np.linalg.norm(b))
     return float(np.degrees(np.arccos(min(c, 1.0))))
 
@@ -81,12 +81,12 @@ def test_mug_reader_matches_pcl_figures():
     # the table: plane fitted to the points near PCL's plane is within 3 deg of it
     dist = near @ PCL_PLANE[:3] + PCL_PLANE[3]
     plane = fit_plane(near[np.abs(dist) < 0.01], 0.002)
-    assert plane.ok and _angle_deg(plane.normal, PCL_PLANE[:3]) < 3.0
+    assert plane.ok and _line_angle_deg(plane.normal, PCL_PLANE[:3]) < 3.0
     # the mug: a cylinder fitted to the points near PCL's cylinder has its radius within 10 %
     sel = (np.abs(_axis_distance(near, PCL_AXIS_POINT, PCL_AXIS) - PCL_RADIUS) < 0.015) & (dist < -0.01)
     cyl = fit_cylinder(near[sel], 0.002, init=(PCL_AXIS_POINT, PCL_AXIS, PCL_RADIUS))
     assert cyl.ok and abs(cyl.radius - PCL_RADIUS) < 0.1 * PCL_RADIUS
-    assert _angle_deg(cyl.axis, PCL_PLANE[:3]) < 3.0  # an upright mug
+    assert _line_angle_deg(cyl.axis, PCL_PLANE[:3]) < 3.0  # an upright mug
 
 
 def test_tunnel_reader_uses_ir_intrinsics():
@@ -148,7 +148,7 @@ def test_mug_table_is_one_plan_patch(mug):
     assert n_in >= 0.8 * on_table.sum(), "no patch covers most of the table"
     assert table.label == "PLAN", f"table patch {table.id} ({table.n_pixels} px) is {table.label}"
     assert on_table[table.pixels].mean() >= 0.9, "the table patch takes in other surfaces"
-    assert _angle_deg(table.classification.primitive.normal, PCL_PLANE[:3]) < 3.0
+    assert _line_angle_deg(table.classification.primitive.normal, PCL_PLANE[:3]) < 3.0
 
 
 def test_mug_body_is_cyl_with_pcl_radius(mug):

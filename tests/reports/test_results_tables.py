@@ -1,14 +1,14 @@
 """Generated results tables: the README's and docs' figures come from committed summaries, never typed."""
 
 import json
-from pathlib import Path
 
+import _support
 import pytest
 
 from harness.cli import main
 from reports.results import BEGIN, END, generated_block, results_markdown, results_table
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = _support.ROOT
 
 
 def _summary(groups):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import _support
 import numpy as np
 import pytest
 
@@ -216,7 +217,6 @@ def first_phase_scene(spec, name: str):
     """The trial's scene with the perturbation the first phase drew for it (``tests/data/first_phase_draws``,
     written by the perturbation engine of commit 0b5908a): the cases these tests pin were found on those draws,
     which the scene-dependent draws of today no longer give."""
-    from pathlib import Path
 
     from harness.trial import PreparedScene, apriori_model
     from recognition.localisation.prediction import ModelPredictor
@@ -224,7 +224,7 @@ def first_phase_scene(spec, name: str):
     from scenes.perturb import ChangeTruth
     from sensors.simulate import Simulator
 
-    d = Path(__file__).parent / "data" / "first_phase_draws" / name
+    d = _support.DATA / "first_phase_draws" / name
     apriori = apriori_model(spec)
     actual = SceneModel.load(d / "actual.yaml")
     truth = ChangeTruth.from_json((d / "truth.json").read_text(encoding="utf-8"))

@@ -8,6 +8,7 @@ import json
 import re
 from pathlib import Path
 
+import _support
 import pytest
 from test_compare import BASE, row_of, run_compare, trials, write_run
 
@@ -19,7 +20,7 @@ from harness.summary import summarise
 from reports.render import render_report
 from scenes.config import ConfigError
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = _support.ROOT
 ZORBLAX = Metric("classification.zorblax", "zorblax score", "higher", "rate", headline=True)
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from _support import angle_deg
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -107,10 +108,6 @@ def _rot_z(T: np.ndarray, deg: float) -> np.ndarray:
     return Rz @ T
 
 
-def _angle_deg(A, B):
-    return np.degrees(np.arccos(np.clip((np.trace(A[:3, :3].T @ B[:3, :3]) - 1) / 2, -1, 1)))
-
-
 def test_symmetric_bay_generates_both_alternatives():
     """A rectangular bay is symmetric under a 180 deg turn: the tree must return both poses (verification
     against the predicted image decides between them, DESIGN 6.3); an asymmetric pipe ranks the right one."""
@@ -131,13 +128,13 @@ def test_symmetric_bay_generates_both_alternatives():
     res = match(desc, model, 1e-3, MatchParams(min_pixels=50))
     poses = [h.pose.T_world_sensor for h in res.hypotheses if h.pose.free_dof == 0]
     T_alt = _rot_z(T_ws, 180.0)
-    assert any(_angle_deg(T, T_ws) < 0.5 and np.linalg.norm(T[:3, 3] - T_ws[:3, 3]) < 0.05 for T in poses)
-    assert any(_angle_deg(T, T_alt) < 0.5 and np.linalg.norm(T[:3, 3] - T_alt[:3, 3]) < 0.05 for T in poses)
+    assert any(angle_deg(T, T_ws) < 0.5 and np.linalg.norm(T[:3, 3] - T_ws[:3, 3]) < 0.05 for T in poses)
+    assert any(angle_deg(T, T_alt) < 0.5 and np.linalg.norm(T[:3, 3] - T_alt[:3, 3]) < 0.05 for T in poses)
     # with the asymmetric pipe in view the right pose explains more and ranks first
     patches.append(_patch(len(patches), pipe, T_sw, rng, n=800, eye=eye))
     desc = SceneDescription(tuple(patches), np.zeros((1, 1), np.int32), None, np.zeros((1, 1)), {})
     best = match(desc, model, 1e-3, MatchParams(min_pixels=50)).hypotheses[0].pose.T_world_sensor
-    assert _angle_deg(best, T_ws) < 0.5 and np.linalg.norm(best[:3, 3] - T_ws[:3, 3]) < 0.05
+    assert angle_deg(best, T_ws) < 0.5 and np.linalg.norm(best[:3, 3] - T_ws[:3, 3]) < 0.05
 
 
 def test_pathological_search_stops_within_its_time_budget():

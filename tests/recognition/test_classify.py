@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
+import _support
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -415,7 +414,7 @@ def test_trimmed_rescue_starts_from_the_points_the_gross_outlier_test_keeps():
     least-trimmed-squares rescue finds the pipe. Its geometric radius reads about 105 mm: the pipe's own
     pixels fit that (their rims mix with the wall within the beam footprint), so only the bound that tells
     the pipe from the mixture is checked."""
-    z = np.load(Path(__file__).parent / "data" / "far_pipe_with_wall.npz")
+    z = np.load(_support.DATA / "far_pipe_with_wall.npz")
     pts, sig, on_pipe = z["points"], z["sigma"], z["on_pipe"]
     assert on_pipe.mean() == pytest.approx(0.85, abs=0.01)
     r = classify_patch(pts, sig)
