@@ -283,7 +283,7 @@ def scene_batches(specs: list[TrialSpec], size: int = DASK_BATCH) -> list[list[T
     in batches of at most ``size``."""
     by_scene: dict[tuple, list[TrialSpec]] = {}
     for spec in specs:
-        by_scene.setdefault((spec.scene_key, spec.perturbation_file, spec.perturbation_seed), []).append(spec)
+        by_scene.setdefault(spec.prepared_key, []).append(spec)
     return [group[i:i + size] for group in by_scene.values() for i in range(0, len(group), size)]
 
 

@@ -17,7 +17,7 @@ from typing import Any, TextIO
 from harness.execute import failed_record, run_dask, run_local
 from harness.provenance import CodeIdentity, code_identity, describe_code, plugin_versions, provenance
 from harness.store import RunDirectory, non_finite_paths, write_json_atomic
-from harness.suite import Suite, TrialSpec
+from harness.suite import Suite, TrialSpec, closest_hint
 from harness.summary import summarise
 
 
@@ -91,10 +91,7 @@ def run_suite(suite: Suite, out: Path, options: RunOptions = RunOptions(), log: 
     if options.only:
         unknown = sorted(set(options.only) - {t.trial_id for t in specs})
         if unknown:
-            import difflib
-
-            close = difflib.get_close_matches(unknown[0], [t.trial_id for t in specs], n=3, cutoff=0.6)
-            hint = f" (closest: {', '.join(close)})" if close else ""
+            hint = closest_hint(unknown[0], [t.trial_id for t in specs])
             raise ValueError(f"--only: no trial {unknown[0]!r} in suite {suite.name!r}{hint}; "
                              f"`harness bench --suite {suite.name} --list` lists its {len(specs)} trials")
         specs = [t for t in specs if t.trial_id in options.only]

@@ -100,6 +100,12 @@ class TrialSpec:
         """What the a priori model is made from: a file, or (family, config, seed)."""
         return (self.scene_file, self.family, self.family_config, self.scene_seed)
 
+    @property
+    def prepared_key(self) -> tuple:
+        """What the prepared scene is made from: the a priori model, the perturbation spec and its seed (trials
+        with the same key share one prepared scene)."""
+        return (self.scene_key, self.perturbation_file, self.perturbation_seed)
+
 
 @dataclass(frozen=True)
 class TrialPlan:
@@ -157,6 +163,14 @@ class Suite:
         for f in files:
             h.update(Path(f).read_bytes())
         return h.hexdigest()[:16]
+
+
+def closest_hint(trial_id: str, ids: list[str], otherwise: str = "") -> str:
+    """`` (closest: a, b, c)``: the ids nearest a mistyped ``trial_id`` (``otherwise`` when none is near)."""
+    import difflib
+
+    close = difflib.get_close_matches(trial_id, ids, n=3, cutoff=0.6)
+    return f" (closest: {', '.join(close)})" if close else otherwise
 
 
 def shipped_suites() -> list[str]:

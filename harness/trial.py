@@ -71,7 +71,7 @@ _SCENES_KEPT = 8
 def prepare_scene(spec: TrialSpec, cache_dir: Path | None) -> PreparedScene:
     """Perturb the a priori scene and compile it; cached in-process (the runner prepares it before forking the
     trial's process, so trials of one scene share the work) and, as files, in ``cache_dir``."""
-    key = (spec.scene_key, spec.perturbation_file, spec.perturbation_seed)
+    key = spec.prepared_key
     with _SCENES_LOCK:
         if key in _SCENES:
             _SCENES.move_to_end(key)
@@ -103,7 +103,7 @@ def apriori_model(spec: TrialSpec, cache_dir: Path | None = None) -> SceneModel:
 
 
 def _prepare(spec: TrialSpec, cache_dir: Path | None) -> PreparedScene:
-    key = (spec.scene_key, spec.perturbation_file, spec.perturbation_seed)
+    key = spec.prepared_key
     apriori = apriori_model(spec, cache_dir)
     tag = f"{spec.scene}-{zlib.crc32(repr(key).encode()):08x}"
     actual_path = cache_dir / tag / "actual.yaml" if cache_dir else None

@@ -75,11 +75,10 @@ def select_trials(records: Sequence[Mapping[str, Any]], selection: Sequence[str]
         elif word in ids:
             out.append(word)
         else:
-            import difflib
+            from harness.suite import closest_hint
 
-            close = difflib.get_close_matches(word, ids, n=3, cutoff=0.6)
             raise ValueError(f"--trials {word}: no such trial in this run"
-                             + (f" (closest: {', '.join(close)})" if close else f" ({len(ids)} trials)"))
+                             + closest_hint(word, ids, f" ({len(ids)} trials)"))
     return list(dict.fromkeys(out))
 
 

@@ -29,14 +29,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def load_record(run_dir: Path, trial_id: str) -> dict[str, Any]:
     path = run_dir / "trials" / f"{trial_id}.json"
     if not path.is_file():
-        import difflib
+        from harness.suite import closest_hint
 
         ids = sorted(p.stem for p in (run_dir / "trials").glob("*.json"))
         if not ids:
             raise FileNotFoundError(f"{run_dir}: no trial records (not a results directory?)")
-        close = difflib.get_close_matches(trial_id, ids, n=3, cutoff=0.6)
-        raise FileNotFoundError(f"{path}: no such trial in this run" + (f" (closest: {', '.join(close)})"
-                                                                        if close else f" ({len(ids)} trials)"))
+        raise FileNotFoundError(f"{path}: no such trial in this run" + closest_hint(trial_id, ids,
+                                                                                     f" ({len(ids)} trials)"))
     return json.loads(path.read_text(encoding="utf-8"))
 
 
