@@ -10,6 +10,7 @@ import shlex
 import shutil
 from pathlib import Path
 
+import _support
 import numpy as np
 import pytest
 import yaml
@@ -23,15 +24,7 @@ from harness.trial import prepare_scene, sensor_for, trial_scan, trial_viewpoint
 from recognition.describe import core_sigma
 
 ROOT = Path(__file__).resolve().parent.parent
-SENSOR = """
-schema: sensor/1
-name: tiny
-pinhole: {width: 160, height: 120, fov_deg: 40.0, min_range: 0.3, max_range: 2.5}
-noise:
-  range: {model: ray, s0_m: 1.0e-4, s2_per_m: 1.0e-4, max_incidence_deg: 80}
-  footprint: {rays: 2, radius_px: 0.5, min_return_fraction: 0.5, mixed_threshold_sigma: 3}
-  outliers: {rate: 2.0e-4}
-"""
+SENSOR = _support.TINY_SENSOR
 
 
 def _readme_section(title: str) -> str:

@@ -11,6 +11,7 @@ import os
 import pkgutil
 from pathlib import Path
 
+import _support
 import pytest
 import yaml
 
@@ -23,15 +24,7 @@ from harness.trial import method_params, prepare_scene, run_trial
 from recognition.interfaces import CLASSIFIER_PARAMS, PARAM_STAGES, CoreParams
 from scenes.config import ConfigError
 
-SENSOR = """
-schema: sensor/1
-name: tiny
-pinhole: {width: 160, height: 120, fov_deg: 40.0, min_range: 0.3, max_range: 2.5}
-noise:
-  range: {model: ray, s0_m: 1.0e-4, s2_per_m: 1.0e-4, max_incidence_deg: 80}
-  footprint: {rays: 2, radius_px: 0.5, min_return_fraction: 0.5, mixed_threshold_sigma: 3}
-  outliers: {rate: 2.0e-4}
-"""
+SENSOR = _support.TINY_SENSOR
 
 #: a value for every stage (the core still runs well with them)
 EVERY_STAGE = {

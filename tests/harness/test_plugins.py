@@ -22,6 +22,7 @@ import sys
 import tomllib
 from pathlib import Path
 
+import _support
 import numpy as np
 import pytest
 import yaml
@@ -39,15 +40,7 @@ from recognition.peers import PEERS
 from scenes.config import ConfigError
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "harness_plugin_example"
-SENSOR = """
-schema: sensor/1
-name: tiny
-pinhole: {width: 160, height: 120, fov_deg: 40.0, min_range: 0.3, max_range: 2.5}
-noise:
-  range: {model: ray, s0_m: 1.0e-4, s2_per_m: 1.0e-4, max_incidence_deg: 80}
-  footprint: {rays: 2, radius_px: 0.5, min_return_fraction: 0.5, mixed_threshold_sigma: 3}
-  outliers: {rate: 2.0e-4}
-"""
+SENSOR = _support.TINY_SENSOR
 BROKEN = '''
 import recognition
 

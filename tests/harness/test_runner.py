@@ -8,6 +8,7 @@ import sys
 import time
 from pathlib import Path
 
+import _support
 import pytest
 
 from harness.cli import main
@@ -18,15 +19,7 @@ from harness.suite import load_suite
 from harness.summary import comparable
 from scenes import ConfigError
 
-SENSOR = """
-schema: sensor/1
-name: tiny
-pinhole: {width: 160, height: 120, fov_deg: 40.0, min_range: 0.3, max_range: 2.5}
-noise:
-  range: {model: ray, s0_m: 1.0e-4, s2_per_m: 1.0e-4, max_incidence_deg: 80}
-  footprint: {rays: 2, radius_px: 0.5, min_return_fraction: 0.5, mixed_threshold_sigma: 3}
-  outliers: {rate: 2.0e-4}
-"""
+SENSOR = _support.TINY_SENSOR
 
 SUITE = """
 schema: suite/1
