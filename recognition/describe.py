@@ -4,6 +4,16 @@
 patches (PLAN, CYL, SPH, CONE, OTH) with their dedicated fits, uncertainties and invariants, in the
 sensor frame. It sees only the :class:`sensors.range_image.Scan` (range, points, sensor and noise
 model); its per-pixel sigma comes from the noise model and its own normal estimates (DESIGN 10.1).
+
+A patch is labelled with confidence only where its support is better than noise (:func:`local_scatter`): the
+ranges of a surface the sensor saw agree with their neighbours' to within the sensor's noise, so the robust scale
+of the patch's second differences of range (rows and columns) is about the noise model's sigma (0.7-1.2 of it on
+the simulated suites' patches of 200 pixels or more). A patch whose neighbouring ranges scatter significantly more
+than ``max_local_scatter`` times the sigma is not a surface this sensor measured (pure noise, or data of a noisier
+sensor than the noise model says): it is OTH with a nearly flat probability (:data:`NOISE_PROBABILITIES`: no class
+at 0.5 or more) and the reason "support not better than noise". The test cannot see a noise model that is wrong
+by being far too large (``kinect_like``'s metres of sigma at 30 m): data as scattered as the model says are, to
+the model, a surface; the readers keep such returns out (:mod:`sensors.readers`: the preset's working range).
 """
 
 from __future__ import annotations
@@ -54,6 +64,19 @@ class DescribeParams:
     merge_min_contacts : int
         Two patches touch (for ``merge_explained``) when at least this many pairs of their pixels are
         8-neighbours.
+    max_local_scatter : float or None
+        A patch whose neighbouring ranges scatter more than this many times the noise model's sigma
+        (:func:`local_scatter`: robust scale of the second differences of range over their sigma) is OTH with a
+        nearly flat probability, reason "support not better than noise", whatever the classifier says; None: no
+        test. A surface gives about 1 (the smoke suite's and four calibration trials' patches of >= 200 pixels:
+        0.7-1.2; slivers of 30-50 pixels up to 3.6); Gaussian noise of 50-300 mm about 2 m read as ``kinect_like``
+        (6 mm there) 8-50.
+        The scatter must exceed the limit by ``local_scatter_z`` standard errors of its estimate (a one-sided test,
+        so that a small patch is not flagged by the spread of its own estimate: :func:`scatter_limit`).
+    local_scatter_z : float
+        Standard errors by which a patch's scatter must exceed ``max_local_scatter``.
+    min_scatter_triples : int
+        Second differences a patch needs for the test (fewer: no test; its classification stands).
 
     Every field's unit and where its value was chosen: :func:`recognition.tuning.tuned` (``docs/tuning.md``).
     """
@@ -71,6 +94,14 @@ class DescribeParams:
     merge_min_contacts: int = tuned(
         3, unit="pixel pairs", chosen="calibration (phase 1), with merge_explained: 8-neighbour contact measured the "
         "same as within 2 pixels; the count itself not varied (97ec30f)")
+    max_local_scatter: float | None = tuned(
+        3.0, unit="sigma", chosen="not tuned: above the simulated suites' patches (0.7-1.2 at >= 200 pixels) and "
+        "below pure noise (8 and more)")
+    local_scatter_z: float = tuned(3.0, unit="standard errors", chosen="not tuned: a one-sided test at 3 standard "
+                                   "errors (the simulated suites' patches of 30 pixels or more stay below 2)")
+    min_scatter_triples: int = tuned(8, unit="second differences", chosen="not tuned: pure noise's fragments of 30 "
+                                     "pixels have 8 or more (the simulated suites' patches of 30 pixels or more: 13 or "
+                                     "more); fewer say little")
 
     def __post_init__(self):
         if not isinstance(self.classifier, str) or self.classifier not in CLASSIFIERS:
@@ -81,6 +112,12 @@ class DescribeParams:
             raise ValueError(f"max_pixels must be >= 1, got {self.max_pixels}")
         if self.merge_min_contacts < 1:
             raise ValueError(f"merge_min_contacts must be >= 1, got {self.merge_min_contacts}")
+        if self.max_local_scatter is not None and not self.max_local_scatter > 0:
+            raise ValueError(f"max_local_scatter must be > 0 or None, got {self.max_local_scatter}")
+        if not self.local_scatter_z >= 0:
+            raise ValueError(f"local_scatter_z must be >= 0, got {self.local_scatter_z}")
+        if self.min_scatter_triples < 3:
+            raise ValueError(f"min_scatter_triples must be >= 3, got {self.min_scatter_triples}")
 
 
 @dataclass(frozen=True)
@@ -170,10 +207,19 @@ def describe(scan: Scan, params: DescribeParams = DescribeParams(),
     flat_normals = segmentation.normals.reshape(-1, 3)
     offsets = _footprint_offsets(scan.noise) if params.classifier == "select" else None
     window = scan.noise.matching_window_px
+    flat_range = scan.range.reshape(-1)
+    scratch = np.zeros(flat_range.size, bool)
+    # without range noise in the model (exact ranges) there is no sigma to compare the scatter with
+    check_support = params.max_local_scatter is not None and bool(getattr(scan.noise, "has_range_noise", True))
 
     def classify(pix: np.ndarray, surface_type: SurfaceType, interior: np.ndarray | None) -> PatchClassification:
         if len(pix) < params.min_classify_pixels:
             return _too_small(len(pix))
+        if check_support:
+            scatter, n = local_scatter(flat_range, flat_sigma, pix, scan.range.shape, scratch)
+            if n >= params.min_scatter_triples and \
+                    scatter > scatter_limit(params.max_local_scatter, n, params.local_scatter_z):
+                return not_better_than_noise(scatter, n, params.max_local_scatter)
         # fitted on the pixels whose matching window stays on the patch, when enough of them remain
         use = slice(None)
         inner = None if interior is None else interior[pix]
@@ -275,6 +321,72 @@ def _merge_explained(patches: list, labels: np.ndarray, params: DescribeParams, 
                            classify(q.pixels[order], q.surface_type, interior), q.small, q.noisy)
         out.append(q)
     return out, labels
+
+
+#: Class probabilities of a patch whose support is not better than noise: nearly flat, OTH the label, every
+#: primitive below 0.2 (change detection lets a patch show a feature of a class it gives 0.2 or more).
+NOISE_PROBABILITIES = {"PLAN": 0.15, "CYL": 0.15, "SPH": 0.15, "CONE": 0.15, "OTH": 0.4}
+
+
+def scatter_limit(limit: float, n: int, z: float) -> float:
+    """The scatter above which ``n`` second differences show more scatter than ``limit`` by ``z`` standard errors:
+    ``limit (1 + z 1.166 / sqrt(n))`` (for ``limit`` = ``z`` = 3: 7.4 for 8, 4.6 for 20, 3.1 for 10,000). 1.166 /
+    sqrt(n) is the relative standard error of the median-based scale of n Gaussian values (the asymptotic variance
+    of a median, ``1 / (4 n g²)`` with ``g`` the density of ``|z|`` at its median 0.6745, over 0.6745²)."""
+    return limit * (1.0 + z * 1.166 / np.sqrt(max(n, 1)))
+
+
+def local_scatter(flat_range: np.ndarray, flat_sigma: np.ndarray, pix: np.ndarray, shape: tuple[int, int],
+                  scratch: np.ndarray | None = None) -> tuple[float, int]:
+    """How much a patch's neighbouring ranges scatter, in units of the noise model's sigma.
+
+    Over every three consecutive pixels of the patch along a row or a column, the second difference of range
+    ``d = r[-1] - 2 r[0] + r[+1]`` over its noise sigma ``sqrt(s[-1]² + 4 s[0]² + s[+1]²)``; returns the robust
+    scale (1.4826 median absolute value) of these and their number. A surface seen by the sensor the noise model
+    describes gives about 1 (its geometry adds little over three pixels, correlated errors give less);
+    independent random ranges give about the spread of the patch's ranges over the sigma. ``(NaN, n)`` for
+    fewer than 3 finite second differences.
+
+    Parameters
+    ----------
+    flat_range, flat_sigma : ndarray of shape (H * W,), metres (the scan's range and the core's sigma).
+    pix : flat indices of the patch's pixels.
+    shape : (H, W).
+    scratch : optional all-False bool array of shape (H * W,), reused (and left all False).
+    """
+    H, W = shape
+    pix = np.asarray(pix, dtype=np.intp)
+    if len(pix) < 3:
+        return float("nan"), 0
+    inside = np.zeros(H * W, bool) if scratch is None else scratch
+    inside[pix] = True
+    try:
+        rows, cols = np.divmod(pix, W)
+        parts = []
+        for ok, step in (((cols > 0) & (cols < W - 1), 1), ((rows > 0) & (rows < H - 1), W)):
+            c = pix[ok]
+            c = c[inside[c - step] & inside[c + step]]
+            r0, s0 = flat_range[c], flat_sigma[c]
+            rm, sm, rp, sp = flat_range[c - step], flat_sigma[c - step], flat_range[c + step], flat_sigma[c + step]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                parts.append((rm - 2.0 * r0 + rp) / np.sqrt(sm * sm + 4.0 * s0 * s0 + sp * sp))
+    finally:
+        inside[pix] = False
+    z = np.concatenate(parts)
+    z = z[np.isfinite(z)]
+    if len(z) < 3:
+        return float("nan"), len(z)
+    return float(1.4826 * np.median(np.abs(z))), len(z)
+
+
+def not_better_than_noise(scatter: float, n: int, limit: float) -> PatchClassification:
+    """The classification of a patch whose support is not better than noise (its :func:`local_scatter` over ``n``
+    second differences beyond :func:`scatter_limit`): OTH with :data:`NOISE_PROBABILITIES`, no fit."""
+    probs = {c: NOISE_PROBABILITIES[c] for c in CLASSES}
+    return PatchClassification("OTH", probs, {"CYL": 0.0, "SPH": 0.0, "CONE": 0.0}, None, {},
+                               reason=f"support not better than noise: neighbouring ranges scatter {scatter:.3g} x "
+                                      f"the sensor model's sigma (a surface: about 1; limit {limit:g})",
+                               details={"local_scatter": scatter, "n_second_differences": n})
 
 
 def window_interior(labels: np.ndarray, window: int) -> np.ndarray:

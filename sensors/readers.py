@@ -32,9 +32,18 @@ saying how the file was read):
 ``.npz``
     The project's own scans (:func:`sensors.io.load_npz`), with the noise model saved in the file.
 
-A file that cannot be used (missing, truncated, wrong header, unknown field layout, no valid depth) raises
-``ValueError`` naming the file and what is wrong (:class:`ReaderError`); intrinsics files that cannot be used
-raise :class:`scenes.config.ConfigError`.
+**The sensor preset's working range.** A real sensor returns nothing outside its working range
+(``min_range``-``max_range`` of the preset, e.g. 0.5-4.5 m for ``kinect_like``), and its noise model means nothing
+there (``kinect_like``'s sigma grows with the square of the depth: metres at 30 m). Returns of a PCD, PLY or PNG
+outside the preset's range are therefore counted (:attr:`ReadInfo.n_out_of_range`, with a note) and left out
+(no return, NaN; an unorganised cloud's before it is projected); when they are more than
+:data:`MAX_OUT_OF_RANGE_FRACTION` of the returns the file is refused (``ReaderError``: "... 94 % of returns
+outside kinect_like's working range 0.5-4.5 m: choose `--sensor-preset` for this sensor"), since the data are not
+what that sensor measures. ``.npz`` scans carry their own sensor model and are not checked.
+
+A file that cannot be used (missing, truncated, wrong header, unknown field layout, no valid depth, most returns
+outside the preset's working range) raises ``ValueError`` naming the file and what is wrong
+(:class:`ReaderError`); intrinsics files that cannot be used raise :class:`scenes.config.ConfigError`.
 """
 
 from __future__ import annotations
@@ -58,9 +67,11 @@ from sensors.range_image import Scan
 
 __all__ = ["Intrinsics", "ReadInfo", "LoadedScan", "ReaderError", "read_scan", "load_scan", "read_pcd",
            "read_ply", "read_depth_png", "read_npz", "load_intrinsics", "organise_cloud", "estimate_intrinsics",
-           "FORMATS"]
+           "FORMATS", "MAX_OUT_OF_RANGE_FRACTION"]
 
 FORMATS = (".pcd", ".ply", ".png", ".npz")
+#: A file with more than this fraction of its returns outside the sensor preset's working range is refused.
+MAX_OUT_OF_RANGE_FRACTION = 0.5
 _CALIB_NAMES = ("calib_params.xml", "intrinsics.yaml", "intrinsics.yml", "camera.yaml", "camera.yml")
 
 
@@ -128,6 +139,9 @@ class ReadInfo:
     noise_preset : the preset whose noise model the scan carries (``file`` for ``.npz``).
     n_collisions : points dropped because a nearer point fell in the same pixel (projected clouds).
     notes : free-text remarks (estimated intrinsics residual, ignored distortion, ...).
+    n_out_of_range : returns of the file outside the preset's working range, left out (module docstring).
+    working_range_m : the preset's working range ``(min_range, max_range)`` in metres the returns were checked
+        against (None: not checked, e.g. ``.npz`` or no preset).
     """
 
     path: str
@@ -141,12 +155,15 @@ class ReadInfo:
     noise_preset: str = ""
     n_collisions: int = 0
     notes: tuple[str, ...] = ()
+    n_out_of_range: int = 0
+    working_range_m: tuple[float, float] | None = None
 
     def to_dict(self) -> dict:
         return {"path": self.path, "format": self.format, "n_points": self.n_points, "n_valid": self.n_valid,
                 "organised": self.organised, "grid": self.grid, "intrinsics_source": self.intrinsics_source,
                 "T_file_sensor": np.asarray(self.T_file_sensor).tolist(), "noise_preset": self.noise_preset,
-                "n_collisions": self.n_collisions, "notes": list(self.notes)}
+                "n_collisions": self.n_collisions, "notes": list(self.notes), "n_out_of_range": self.n_out_of_range,
+                "working_range_m": None if self.working_range_m is None else list(self.working_range_m)}
 
 
 @dataclass(frozen=True)
@@ -194,7 +211,8 @@ def load_scan(path: str | Path, *, intrinsics: Intrinsics | tuple | None = None,
 
     Raises
     ------
-    ReaderError (a ValueError) : unknown extension, missing or unusable file.
+    ReaderError (a ValueError) : unknown extension, missing or unusable file; more than
+        :data:`MAX_OUT_OF_RANGE_FRACTION` of the returns outside the preset's working range.
     ConfigError : unknown preset, unusable intrinsics file.
     """
     path = Path(path)
@@ -363,6 +381,42 @@ def _range_limits(rng: np.ndarray, preset: tuple[float, float]) -> tuple[float, 
 def _preset_limits(preset: str) -> tuple[float, float]:
     model = load_sensor(preset).model
     return model.min_range, model.max_range
+
+
+def _out_of_range(path: Path, rng: np.ndarray, preset: str) -> tuple[np.ndarray, str]:
+    """Mask of the returns (finite ``rng``, metres) outside the working range of ``preset`` (none without a preset),
+    and the note saying how many were left out ("" when none); refuses the file (``ReaderError``) when they are
+    more than :data:`MAX_OUT_OF_RANGE_FRACTION` of its returns."""
+    finite = np.isfinite(rng)
+    if not preset or not finite.any():
+        return np.zeros(rng.shape, bool), ""
+    config = load_sensor(preset)
+    lo, hi = config.model.min_range, config.model.max_range
+    with np.errstate(invalid="ignore"):
+        out = finite & ((rng < lo) | (rng > hi))
+    n_out, n = int(out.sum()), int(finite.sum())
+    if not n_out:
+        return out, ""
+    name = config.name or str(preset)
+    where = f"outside {name}'s working range {lo:g}-{hi:g} m"
+    if n_out > MAX_OUT_OF_RANGE_FRACTION * n:
+        raise ReaderError(path, f"{100.0 * n_out / n:.0f} % of returns {where}: choose `--sensor-preset` for this "
+                          "sensor")
+    return out, f"{n_out} of {n} returns ({100.0 * n_out / n:.1f} %) {where} left out"
+
+
+def _drop_out_of_range(path: Path, rng: np.ndarray, pts: np.ndarray,
+                       preset: str) -> tuple[np.ndarray, np.ndarray, int, str]:
+    """``(range, points, n_out, note)`` with the returns outside the preset's working range set to NaN
+    (:func:`_out_of_range`)."""
+    out, note = _out_of_range(path, rng, preset)
+    if not out.any():
+        return rng, pts, 0, note
+    return np.where(out, np.nan, rng), np.where(out[..., None], np.nan, pts), int(out.sum()), note
+
+
+def _working_range(preset: str) -> tuple[float, float] | None:
+    return _preset_limits(preset) if preset else None
 
 
 def _finish(path: Path, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -534,6 +588,8 @@ def read_pcd(path: str | Path, *, noise: NoiseModel, intrinsics: Intrinsics | No
         return LoadedScan(loaded.scan, info)
     pts = xyz
     rng, pts = _finish(path, pts.reshape(height, width, 3))
+    rng, pts, n_out, note = _drop_out_of_range(path, rng, pts, preset)
+    notes += [note] if note else []
     if intrinsics is None:
         try:
             intrinsics, rms = estimate_intrinsics(pts)
@@ -544,7 +600,7 @@ def read_pcd(path: str | Path, *, noise: NoiseModel, intrinsics: Intrinsics | No
     sensor = _pinhole(intrinsics, width, height, rng, _preset_limits(preset) if preset else (0.0, 1.0))
     scan = Scan(rng, pts, sensor, noise)
     info = ReadInfo(str(path), fmt, n_points, int(np.isfinite(rng).sum()), True, "pinhole", intrinsics.source,
-                    np.eye(4), preset, 0, tuple(notes))
+                    np.eye(4), preset, 0, tuple(notes), n_out_of_range=n_out, working_range_m=_working_range(preset))
     return LoadedScan(scan, info)
 
 
@@ -731,6 +787,9 @@ def organise_cloud(points: np.ndarray, *, noise: NoiseModel, path: str | Path = 
     q = p - o
     r = np.linalg.norm(q, axis=1)
     q, r = q[r > 0], r[r > 0]
+    out, range_note = _out_of_range(Path(str(path)), r, preset)  # left out before the projection
+    n_out = int(out.sum())
+    q, r = q[~out], r[~out]
     if len(q) < 10:
         raise ReaderError(path, f"no valid depth: {len(q)} usable points of {n_file}")
     if view_direction is None:
@@ -802,8 +861,10 @@ def organise_cloud(points: np.ndarray, *, noise: NoiseModel, path: str | Path = 
         source = f"spherical grid fitted to the cloud ({fmt}, {math.degrees(step):.4f} deg pitch)"
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, o
+    notes = (f"projected from origin {o.tolist()} along {R[:, 2].round(4).tolist()}",) + \
+        ((range_note,) if range_note else ())
     info = ReadInfo(str(path), fmt, len(p), int(np.isfinite(rng).sum()), False, kind, source, T, preset,
-                    int(len(q) - len(keep)), (f"projected from origin {o.tolist()} along {R[:, 2].round(4).tolist()}",))
+                    int(len(q) - len(keep)), notes, n_out_of_range=n_out, working_range_m=_working_range(preset))
     return LoadedScan(Scan(rng, img, sensor, noise), info)
 
 
@@ -846,12 +907,14 @@ def read_depth_png(path: str | Path, *, noise: NoiseModel, intrinsics: Intrinsic
     v = (np.arange(height) - intrinsics.cy) / intrinsics.fy
     pts = np.stack([d * u[None, :], d * v[:, None], d], axis=-1)
     rng, pts = _finish(path, pts)
-    notes = []
+    rng, pts, n_out, note = _drop_out_of_range(path, rng, pts, preset)
+    notes = [note] if note else []
     if any(abs(c) > 0 for c in intrinsics.distortion):
         notes.append("lens distortion coefficients present but not applied")
     sensor = _pinhole(intrinsics, width, height, rng, _preset_limits(preset) if preset else (0.0, 1.0))
     info = ReadInfo(str(path), "png/16-bit", int(np.count_nonzero(depth_raw)), int(np.isfinite(rng).sum()), True,
-                    "pinhole", intrinsics.source, np.eye(4), preset, 0, tuple(notes))
+                    "pinhole", intrinsics.source, np.eye(4), preset, 0, tuple(notes), n_out_of_range=n_out,
+                    working_range_m=_working_range(preset))
     return LoadedScan(Scan(rng, pts, sensor, noise), info)
 
 

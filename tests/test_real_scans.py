@@ -96,7 +96,10 @@ def test_tunnel_reader_uses_ir_intrinsics():
     raw = np.asarray(Image.open(TUNNEL))
     scan = loaded.scan
     assert scan.shape == raw.shape == (480, 640)
-    assert loaded.info.n_valid == int(np.count_nonzero(raw))
+    # the returns beyond kinect_like's 4.5 m (2.1 % of them, up to 7.3 m down the tunnel) are counted and left out
+    assert loaded.info.working_range_m == (0.5, 4.5) and loaded.info.n_out_of_range == 5481
+    assert loaded.info.n_valid + loaded.info.n_out_of_range == int(np.count_nonzero(raw))
+    assert np.nanmax(scan.range) <= 4.5 and "5481 of 261944 returns (2.1 %)" in " ".join(loaded.info.notes)
     assert "IR_intrinsic_params" in loaded.info.intrinsics_source
     assert scan.sensor.fx == pytest.approx(575.92685448804468)
     np.testing.assert_allclose(scan.depth[scan.valid], raw[scan.valid] / 1000.0)

@@ -3,9 +3,10 @@
 Reads FILE with :func:`sensors.readers.load_scan` (organised PCD, PLY, 16-bit depth PNG, the project's ``.npz``),
 runs segmentation and classification (:func:`recognition.describe.describe`) and writes to ``--out``:
 
-- ``description.json``: the source (how the file was read), timings, and every patch with its label,
-  probabilities, plausibilities, fitted parameters and their sigmas, invariants (schema
-  ``harness.describe/1``; metres and radians, as inside the core);
+- ``description.json``: the source (how the file was read, with ``n_out_of_range``: the returns outside the
+  sensor preset's working range ``working_range_m``, left out; more than half of them and the file is refused),
+  timings, and every patch with its label, probabilities, plausibilities, fitted parameters and their sigmas,
+  invariants (schema ``harness.describe/1``; metres and radians, as inside the core);
 - ``table.md``: the paper-style table (region, P(cyl), P(sphere), P(cone), class: the paper's plausibilities)
   plus the class probability vector P(PLAN) ... P(OTH), size and main parameter;
 - ``shaded.png`` (cosine-shaded range image), ``regions.png`` (patches coloured by id, numbered with the region
@@ -105,7 +106,11 @@ def run(args: argparse.Namespace) -> int:
     save_region_png(out / "regions.png", desc, title=f"{args.file.name}: regions")
     save_class_png(out / "classes.png", desc, title=f"{args.file.name}: classes ({args.classifier} classifier)")
     counts = {c: sum(1 for p in desc.patches if p.label == c) for c in CLASSES}
-    print(f"{args.file.name}: {loaded.scan.shape[1]}x{loaded.scan.shape[0]}, {loaded.info.n_valid} returns, "
+    info = loaded.info
+    left_out = (f" ({info.n_out_of_range} outside {info.noise_preset}'s working range "
+                f"{info.working_range_m[0]:g}-{info.working_range_m[1]:g} m left out)"
+                if info.n_out_of_range and info.working_range_m else "")
+    print(f"{args.file.name}: {loaded.scan.shape[1]}x{loaded.scan.shape[0]}, {info.n_valid} returns{left_out}, "
           f"{len(desc.patches)} patches (" + ", ".join(f"{n} {c}" for c, n in counts.items() if n) + "), "
           f"read {read_s:.2f} s, describe {sum(desc.timing_s.values()):.2f} s -> {out}")
     if located is not None:

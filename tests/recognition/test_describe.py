@@ -83,3 +83,46 @@ def test_merge_test_tells_one_surface_from_two():
     assert merge_test(fit_plane(q[:1000], s2[:1000]), q[:1000], s2[:1000], fit_plane(q[1000:], s2[1000:]),
                       q[1000:], s2[1000:]) is None
     assert merge_test(fa, pts[a], sig[a], fit_plane(q[:1000], s2[:1000]), q[:1000], s2[:1000]) is None
+
+
+def test_local_scatter_measures_neighbouring_ranges_against_the_sigma():
+    """About 1 for a surface whose noise is the model's, k for noise k times the model's; NaN and no count
+    without three consecutive pixels."""
+    from recognition.describe import local_scatter, scatter_limit
+
+    H, W = 40, 50
+    rng = np.random.default_rng(3)
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    surface = 2.0 + 0.01 * u + 0.002 * v + 1e-4 * (u - 25.0) ** 2  # a tilted, gently curved surface
+    sigma = np.full(H * W, 0.004)
+    pix = np.arange(H * W)
+    for k in (1.0, 20.0):
+        r = (surface + k * 0.004 * rng.standard_normal((H, W))).ravel()
+        s, n = local_scatter(r, sigma, pix, (H, W))
+        assert n == H * (W - 2) + (H - 2) * W and s == pytest.approx(k, rel=0.1)
+    checker = np.flatnonzero((u + v).ravel() % 2 == 0)  # no two pixels of a row or column adjacent
+    assert np.isnan(local_scatter(r, sigma, checker, (H, W))[0])
+    assert scatter_limit(3.0, 10000, 3.0) == pytest.approx(3.1, abs=0.01) and scatter_limit(3.0, 8, 0.0) == 3.0
+
+
+def test_a_patch_not_better_than_noise_is_unsure(mockup_scan):
+    """A real patch keeps its label; its ranges shuffled among its pixels (the same values, no surface) make it
+    OTH at under 0.5 for every class; the test can be switched off."""
+    scan, _, seg = mockup_scan  # the truth segmentation: no segmenter run
+    desc = describe(scan, DescribeParams(merge_explained=False), seg)
+    big = max(desc.patches, key=lambda p: p.n_pixels)
+    assert big.label != "OTH" and not big.classification.reason
+    noisy = scan.range.copy().ravel()
+    noisy[big.pixels] = np.random.default_rng(0).permutation(noisy[big.pixels])
+    noisy = noisy.reshape(scan.range.shape)
+    shuffled = replace(scan, range=noisy, points=scan.points / scan.range[..., None] * noisy[..., None])
+    got = describe(shuffled, DescribeParams(merge_explained=False), seg)
+    p = next(q for q in got.patches if q.id == big.id)
+    assert p.label == "OTH" and p.classification.reason.startswith("support not better than noise")
+    assert max(p.classification.probabilities.values()) < 0.5 and p.classification.primitive is None
+    off = describe(shuffled, DescribeParams(merge_explained=False, max_local_scatter=None), seg)
+    assert not next(q for q in off.patches if q.id == big.id).classification.reason.startswith("support")
+    with pytest.raises(ValueError, match="max_local_scatter"):
+        DescribeParams(max_local_scatter=0.0)
+    with pytest.raises(ValueError, match="min_scatter_triples"):
+        DescribeParams(min_scatter_triples=2)

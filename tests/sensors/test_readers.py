@@ -387,9 +387,9 @@ def test_depth_png_back_projection(tmp_path):
     np.testing.assert_allclose(scan.points[10, 10], [2.345 * (10 - cx) / fx, 2.345 * (10 - cy) / fy, 2.345])
     np.testing.assert_allclose(scan.depth[scan.valid & (depth == 1500)], 1.5)
     assert loaded.info.n_valid == int(np.count_nonzero(depth))
-    # depth scale: 0.1 mm units
-    scan2 = read_scan(path, intrinsics=K, depth_scale=1e-4)
-    assert scan2.depth[10, 10] == pytest.approx(0.2345)
+    # depth scale: 1.5 mm units (within kinect_like's working range, 0.5-4.5 m)
+    scan2 = read_scan(path, intrinsics=K, depth_scale=1.5e-3)
+    assert scan2.depth[10, 10] == pytest.approx(3.5175)
     # the sensor's rays go through the points
     rays = scan.sensor.ray_directions()
     np.testing.assert_allclose(scan.points[scan.valid], (rays * scan.range[..., None])[scan.valid], atol=1e-12)
@@ -507,3 +507,56 @@ def test_bad_npz_and_dispatch(tmp_path):
     with pytest.raises(ValueError, match=r"intrinsics must be \(fx, fy, cx, cy\)"):
         read_scan(good, intrinsics=(1.0, 2.0))
     assert Intrinsics.coerce(None) is None
+
+
+# ------------------------------------------------------------------------------------------------ working range
+
+
+def test_returns_outside_the_working_range_are_counted_and_left_out(tmp_path):
+    """kinect_like measures 0.5-4.5 m: a depth PNG's returns nearer or farther are left out, counted in the
+    ReadInfo (and its dict) with a note, and the sensor model keeps the preset's limits."""
+    depth = np.full((H, W), 1500, np.uint16)
+    depth[:, :4] = 9000  # 10 % far beyond the range
+    depth[0, 10:14] = 400  # 4 pixels too near
+    depth[5, 5] = 0  # no return: not counted
+    path = tmp_path / "d.png"
+    write_depth_png(path, depth)
+    loaded = load_scan(path, intrinsics=K)
+    info, scan = loaded.info, loaded.scan
+    assert info.n_out_of_range == 4 * H + 4 and info.working_range_m == (0.5, 4.5)
+    assert info.n_points == H * W - 1 and info.n_valid == info.n_points - info.n_out_of_range
+    assert not scan.valid[:, :4].any() and not scan.valid[0, 10:14].any() and np.isnan(scan.points[0, 0]).all()
+    assert (scan.sensor.min_range, scan.sensor.max_range) == (0.5, 4.5)
+    assert f"{info.n_out_of_range} of {info.n_points} returns (10.3 %) outside kinect_like's working range " \
+           "0.5-4.5 m left out" in info.notes
+    d = info.to_dict()
+    assert d["n_out_of_range"] == info.n_out_of_range and d["working_range_m"] == [0.5, 4.5]
+    # another preset, another range: mockup_laser's 0.3-2.5 m keeps the near pixels, not the far ones
+    assert load_scan(path, intrinsics=K, sensor_preset="mockup_laser").info.n_out_of_range == 4 * H
+
+
+def test_most_returns_outside_the_working_range_are_refused(tmp_path):
+    depth = np.full((H, W), 9000, np.uint16)  # 9 m: beyond kinect_like's 4.5 m
+    depth[:, :10] = 1500
+    path = tmp_path / "far.png"
+    write_depth_png(path, depth)
+    with pytest.raises(ReaderError, match=r"far\.png: 75 % of returns outside kinect_like's working range 0\.5-4\.5 m: "
+                                          r"choose `--sensor-preset` for this sensor$"):
+        load_scan(path, intrinsics=K)
+    assert load_scan(path, intrinsics=K, sensor_preset="factory_scanner").info.n_out_of_range == 0  # 0.5-20 m
+
+
+def test_clouds_lose_their_out_of_range_points_before_projection(tmp_path):
+    """An organised PCD and an unorganised PLY: points beyond the preset's range are dropped (a too-near point
+    does not hide the pixel's valid one behind it)."""
+    pts = organised_points()
+    pts[10:12] *= 4.0  # two rows at about 6 m
+    write_pcd(tmp_path / "o.pcd", pts, "binary")
+    loaded = load_scan(tmp_path / "o.pcd", intrinsics=K)
+    assert loaded.info.n_out_of_range == 2 * W and not loaded.scan.valid[10:12].any()
+    cloud = lattice_cloud_opengl()
+    near = cloud[:100] * 0.1  # 0.2 m from the sensor, on the rays of valid points
+    write_ply(tmp_path / "c.ply", np.concatenate([cloud, near]))
+    loaded = load_scan(tmp_path / "c.ply")
+    assert loaded.info.n_out_of_range == 100 and loaded.info.n_collisions == 0
+    assert loaded.info.n_valid == len(cloud)
