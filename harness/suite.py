@@ -24,6 +24,11 @@ suite runs on the same trial and image::
         max_range: 4.0                     # optional: clip the sensor's range (e.g. kinect_like < 4 m)
         sweep: {noise_scale: [0.5, 1.0, 2.0]}   # optional: each value is a group of its own (DESIGN 10.13)
 
+Sweepable (:data:`SWEEPABLE`): ``noise_scale`` (every noise sigma times the value), ``footprint_rays`` (sub-rays
+of the beam), ``max_range`` (metres, as the group key above) and ``view_distance`` (metres: the sensor's
+distance from the point it looks at is drawn within +-10 % of the value, :data:`VIEW_DISTANCE_BAND`, instead of
+the sensor's own ``(max(1.5 min_range, 0.15 max_range), 0.6 max_range)``; the same directions are drawn).
+
 Methods (DESIGN 11.5; :mod:`harness.methods`). A method's name is a built-in method (``core``, ``paper``, a peer of
 :data:`recognition.peers.PEERS`), a plug-in installed under the entry-point group ``landmark_harness.methods``, or
 a name of one's own that says what it is: ``base: <one of those>`` (``core_merge4: {base: core, ...}``) or
@@ -66,7 +71,8 @@ if TYPE_CHECKING:
 SUITES_DIR = Path(__file__).parent / "suites"
 METHODS = ("core", "paper")
 ORACLES = ("segmentation", "classification", "pairing", "pose")
-SWEEPABLE = ("noise_scale", "footprint_rays", "max_range")
+SWEEPABLE = ("noise_scale", "footprint_rays", "max_range", "view_distance")
+VIEW_DISTANCE_BAND = (0.9, 1.1)  # a swept view_distance d: the viewpoint's distance is drawn in [0.9 d, 1.1 d]
 MAX_TRIALS = 100_000  # a suite larger than this is a typo (e.g. a seed list pasted twice), not a benchmark
 
 

@@ -23,7 +23,7 @@ from evaluation.oracles import truth_classification, truth_pairings, truth_segme
 from evaluation.patches import classification_section, segmentation_section
 from evaluation.pose import changed_features, constrains_pose, pose_section
 from harness.methods import MethodSpec, call_stage, stage_method
-from harness.suite import TrialPlan, TrialSpec
+from harness.suite import VIEW_DISTANCE_BAND, TrialPlan, TrialSpec
 from recognition.change import detect_changes
 from recognition.describe import DescribeParams, core_sigma, describe
 from recognition.interfaces import CoreParams
@@ -148,10 +148,18 @@ def viewpoint_rng(spec: TrialSpec) -> np.random.Generator:
     return np.random.default_rng([spec.suite_seed, key, spec.perturbation_seed, spec.viewpoint])
 
 
+def viewpoint_spec(spec: TrialSpec) -> ViewpointSpec:
+    """What the trial's viewpoint must satisfy; a swept ``view_distance`` d fixes its distance band to
+    :data:`harness.suite.VIEW_DISTANCE_BAND` times d (otherwise the sensor's own)."""
+    d = spec.overrides.get("view_distance")
+    band = None if d is None else (VIEW_DISTANCE_BAND[0] * float(d), VIEW_DISTANCE_BAND[1] * float(d))
+    return ViewpointSpec(min_surfaces=spec.min_view_surfaces, min_pixels=spec.min_view_pixels, distance_m=band)
+
+
 def trial_viewpoints(spec: TrialSpec, prepared: PreparedScene, config: SensorConfig):
     """The trial's viewpoint sample (one viewpoint, or none with the rejection counts)."""
     return sample_viewpoints(prepared.simulator, prepared.actual, config.model, 1, viewpoint_rng(spec),
-                             ViewpointSpec(min_surfaces=spec.min_view_surfaces, min_pixels=spec.min_view_pixels))
+                             viewpoint_spec(spec))
 
 
 def trial_scan(spec: TrialSpec, prepared: PreparedScene, config: SensorConfig,

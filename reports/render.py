@@ -36,6 +36,7 @@ from reports.colours import CHANGE_COLOURS, CHANGE_LABELS, CLASS_COLOURS, CLASSE
 from reports.document import Cell, Code, Document, GalleryTrial, Grid, Image, Links, Note, Para, Section, Table
 from reports.html import render_html
 from reports.markdown import render_markdown
+from reports.paper_table import paper_reproduction_section
 from reports.regression import (
     MOVES_HEADER,
     Missing,
@@ -496,6 +497,9 @@ def classification_section(run: RunData, table_trial: str | None) -> Section:
                             "right against the probability the method gave it (below: patches per bin).",
                             alt="reliability diagram"))
     subs = [paper_table_section(run, table_trial)]
+    reproduction = paper_reproduction_section(run.ok_records(), str(run.summary.get("suite") or ""))
+    if reproduction is not None:  # the paper's table against every condition of the run (issue 37)
+        subs.append(reproduction)
     return Section("classification", "Classification", blocks, subs)
 
 

@@ -20,7 +20,9 @@ label among CYL/SPH/CONE is given when its plausibility is the highest and beats
 ``margin`` (0.2), and is then verified a posteriori by the dedicated fit, whose RMS distance must be within
 ``verify_factor * RMS(sigma)``; otherwise OTH. PLAN comes from segmentation (``planar_hint``) or, as
 documented here, when a plane fit explains the points within the same noise bound (the quadric is then not
-identifiable: any quadric containing the plane fits). Class probabilities (for the Brier score, DESIGN
+identifiable: any quadric containing the plane fits). The choices the paper leaves open (the "= 0" heuristic,
+the eigenvalue bound, how many points are fitted and how they are chosen) are options of :class:`PaperParams`.
+Class probabilities (for the Brier score, DESIGN
 10.8): the three plausibilities, ``OTH = max(0, 1 - their sum)``, renormalised; ``PLAN = 1`` with the hint.
 """
 
@@ -35,7 +37,21 @@ from recognition.fitting import canonicalise, fit_quadric
 from .params import PaperParams
 from .result import PatchClassification, _invariants, _probs, _result, _rms_sigma, _subsample
 
-__all__ = ["paper_plausibilities"]
+__all__ = ["paper_plausibilities", "paper_subsample"]
+
+
+def paper_subsample(n: int, max_points: int, mode: str = "stride") -> np.ndarray:
+    """Indices (ascending) of the at most ``max_points`` of a patch's ``n`` points that the paper's quadric fit
+    uses (:attr:`PaperParams.subsample`): all of them when ``n <= max_points``; else ``"stride"``, the rounded
+    ``linspace(0, n - 1, max_points)``, or ``"random"``, ``max_points`` distinct indices drawn uniformly by
+    ``default_rng(n)``."""
+    if n <= max_points:
+        return np.arange(n)
+    if mode == "stride":
+        return _subsample(n, max_points)
+    if mode == "random":
+        return np.sort(np.random.default_rng(n).choice(n, max_points, replace=False)).astype(np.intp)
+    raise ValueError(f"subsample must be 'stride' or 'random', got {mode!r}")
 
 
 def _p_pos(x: float, s: float) -> float:
@@ -88,7 +104,7 @@ def paper_plausibilities(fit, params: PaperParams) -> tuple[dict[str, float], di
 
 
 def _classify_paper(pts, sig, nrm, params: PaperParams, planar_hint: bool) -> PatchClassification:
-    idx = _subsample(len(pts), params.max_points)
+    idx = paper_subsample(len(pts), params.max_points, params.subsample)
     ps, ss = pts[idx], sig[idx]
     bound = params.verify_factor * _rms_sigma(sig)
     if planar_hint:

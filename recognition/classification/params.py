@@ -15,18 +15,43 @@ from recognition.tuning import tuned
 class PaperParams:
     """Parameters of the paper's plausibility classifier.
 
+    Section 3 of the paper fixes the rule (plausibilities from the propagated Gaussians of the canonical
+    parameters, the 0.2 margin, the a posteriori check) but leaves open the choices below; each is an option
+    here, its default today's reading (the ``paper`` baseline), and the ``paper_reproduction`` suite runs the
+    alternatives side by side (``docs/paper_reproduction.md``).
+
     Attributes
     ----------
     zero_rule : {"literal", "soft"}
-        Plausibility of ``x = 0``: ``2 min(P(x>0), P(x<0))`` or ``exp(-z²/8)`` with ``z = x / sigma``.
+        Plausibility of ``x = 0``. The paper: "heuristic functions involving the probabilities that the
+        corresponding parameter is greater or lower than the required value (zero)", no function given.
+        ``"literal"``: ``2 min(P(x>0), P(x<0))`` (1 at ``x = 0``, 0.317 at one sigma, 0.046 at two: for an exact
+        primitive it is uniform on [0, 1]); ``"soft"``: ``exp(-z²/8)`` with ``z = x / sigma`` (0.88 at one sigma,
+        0.61 at two).
     sigma_mode : {"bauer_fike", "first_order"}
-        Eigenvalue sigmas (see :func:`recognition.fitting.canonicalise`).
+        Eigenvalue sigmas (see :func:`recognition.fitting.canonicalise`). The paper: "we used an upper bound
+        provided by the Bauer-Fike theorem", without saying how the size of the perturbation of ``A`` is taken
+        from the fit's covariance, nor whether the eigenvalues' correlations (with each other and with
+        ``C_cano``) are kept. ``"bauer_fike"``: ``sigma_l = sqrt(E ||dA||_F²)`` for every eigenvalue,
+        uncorrelated; ``"first_order"``: ``dl_i = v_i' dA v_i`` with the full covariance (smaller sigmas: the
+        "= 0" tests are stricter).
     margin : float
         The winning plausibility must beat the others by more than this (paper: 0.2).
     verify_factor : float
-        A posteriori check: the dedicated fit's RMS distance must be <= ``verify_factor * RMS(sigma)``.
+        A posteriori check: the dedicated fit's RMS distance must be <= ``verify_factor * RMS(sigma)``. The
+        paper: "if lower than a given threshold"; the threshold is not given.
     max_points : int
-        Subsample size for the fits.
+        How many of the patch's points the fits use (the quadric's, hence the sigmas of the canonical
+        parameters, which shrink as ``1 / sqrt(max_points)``; and the dedicated fits'). The paper fits each
+        patch whole (least squares, then an Extended Kalman Filter) and does not say how many measured points
+        its patches had, only that the OTH ones were "small patches containing a small number of noisy measure
+        points": with fewer points the same biases (beam footprint, range-dependent noise) are fewer sigmas
+        away from zero, and every "= 0" plausibility rises.
+    subsample : {"stride", "random"}
+        How the quadric fit's ``max_points`` points are chosen when the patch has more (not said by the paper,
+        which used them all; the dedicated fits keep their own regular stride): ``"stride"``, evenly spaced in the
+        patch's pixel order (row-major: every k-th pixel, a regular grid over the patch); ``"random"``, a uniform
+        draw without replacement, seeded by the patch's point count (the same patch gives the same points).
     huber : float or None
         Huber threshold (sigma units) of the dedicated fits.
     """
@@ -36,7 +61,21 @@ class PaperParams:
     margin: float = tuned(0.2, unit="probability", chosen="the paper's value")
     verify_factor: float = tuned(1.5, unit="ratio", chosen="not tuned: set with the baseline in 1a61ec8")
     max_points: int = tuned(2000, unit="points", chosen="not tuned: a speed bound, set in 1a61ec8")
+    subsample: str = tuned("stride", unit="-", chosen="not tuned: the regular stride of 1a61ec8 (the baseline)")
     huber: float | None = tuned(3.0, unit="sigma", chosen="not tuned: set in 1a61ec8")
+
+    def __post_init__(self) -> None:
+        choices = {"zero_rule": ("literal", "soft"), "sigma_mode": ("bauer_fike", "first_order"),
+                   "subsample": SUBSAMPLES}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {getattr(self, name)!r}")
+        if self.max_points < 10:
+            raise ValueError(f"max_points must be >= 10 (a quadric has 9 degrees of freedom), got {self.max_points!r}")
+
+
+#: How :class:`PaperParams` chooses a patch's ``max_points`` points (its ``subsample``).
+SUBSAMPLES = ("stride", "random")
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ from harness.cli import main
 from harness.commands.bench import EXIT_TRIALS_FAILED
 from harness.run import RunOptions, run_suite
 from harness.suite import load_suite, suite_from_dict
-from harness.trial import apriori_model, prepare_scene, sensor_for
+from harness.trial import apriori_model, prepare_scene, sensor_for, viewpoint_spec
 from scenes import ConfigError
 from scenes.families import family_member
 from sensors.config import load_sensor
@@ -92,7 +92,7 @@ def test_every_sweepable_parameter_runs_end_to_end(tmp_path):
     from harness.suite import SWEEPABLE
 
     (tmp_path / "tiny_sensor.yaml").write_text(SENSOR)
-    sweeps = {"noise_scale": [0.5, 2.0], "footprint_rays": [1, 3], "max_range": [2.0]}
+    sweeps = {"noise_scale": [0.5, 2.0], "footprint_rays": [1, 3], "max_range": [2.0], "view_distance": [1.2]}
     assert set(sweeps) == set(SWEEPABLE)  # a new sweepable parameter needs its end-to-end run here
     groups = [{"scene": "mockup", "label": f"m-{key}", "perturbation": "mockup_perturbation", "sensor":
                "tiny_sensor.yaml", "viewpoints": 1, "min_view_pixels": 50, "min_view_surfaces": 3,
@@ -107,11 +107,14 @@ def test_every_sweepable_parameter_runs_end_to_end(tmp_path):
     assert by_value["noise_scale", 2.0].noise.s0_m == pytest.approx(2 * base.noise.s0_m)
     assert by_value["footprint_rays", 3].noise.footprint_rays == 3
     assert by_value["max_range", 2.0].model.max_range == 2.0
+    far = next(t for t in suite.trials if "view_distance" in t.overrides)
+    assert viewpoint_spec(far).distance_m == pytest.approx((1.08, 1.32))  # +-10 % of 1.2 m
+    assert viewpoint_spec(suite.trials[0]).distance_m is None  # the sensor's own band
     summary = run_suite(suite, tmp_path / "run", RunOptions(workers=2, progress=False), log=open(os.devnull, "w"))
     assert summary["n_failed"] == 0, summary["failures"]
     assert set(summary["groups"]) == {"m-noise_scale[noise_scale=0.5]", "m-noise_scale[noise_scale=2]",
                                       "m-footprint_rays[footprint_rays=1]", "m-footprint_rays[footprint_rays=3]",
-                                      "m-max_range[max_range=2]"}
+                                      "m-max_range[max_range=2]", "m-view_distance[view_distance=1.2]"}
     assert all(g["segmentation"] is not None for g in summary["groups"].values())
 
 
