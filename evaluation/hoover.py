@@ -26,9 +26,29 @@ Bookkeeping choices (documented because the original leaves them to its input fo
   in any overlap; a machine region with no pixel on a truth region is not scored (not noise);
 - machine label -1 means "no region": such pixels count in ``|g|`` (they lower the overlap ratios) but form
   no region;
-- ``min_truth_pixels``: smaller truth regions still take part in the classification (they absorb machine
-  pixels) but are not counted in the truth rates; a machine region whose largest overlap is with such an
-  unscored truth region is likewise left out of the noise rate.
+- ``min_truth_pixels``: a truth region smaller than this is **no truth**, exactly like label -1, on both
+  sides: its pixels count in no ``|m|`` and in no overlap, it takes no part in the classification and is not
+  counted in the truth rates (class ``unscored``); a machine region left with no pixel on a scored truth
+  region is not scored either (not noise).
+
+Why small truth regions are no truth (issue 35, "The metric itself"): Hoover et al.'s ground truth has no
+"small region" category. Its operator outlined the regions worth scoring and left everything else (shadow and
+no return, areas too small or too ambiguous to outline) with the no-region label, and the comparison counts
+``O``, ``|m|`` and ``|g|`` over the outlined pixels only: a machine pixel over no-region truth is neither right
+nor wrong. The ``min_truth_pixels`` floor (200 pixels, ``evaluation.metrics.MIN_SCORED_PIXELS``) stands for that
+operator's decision on our synthetic truth, which outlines every visible surface piece however small; what it
+rejects must therefore be what the operator would not have outlined. Letting such regions take part while
+leaving them out of the rates (this module until issue 35) put pixels that no rate counts into ``|m|``: a
+machine region covering a scored region and a few small neighbours could fail ``O >= T |m|`` (or turn into an
+under-segmentation of the scored region with them) because of pixels of unscored surfaces, and a machine region
+lying mostly on small ones was dropped from the noise rate. An independent implementation that treats them as
+no truth agreed on the mean but not frame by frame; that treatment is the one adopted here. Source: the
+paper's definitions above and its ground-truth convention. The original ``compare`` program could not be
+read: searches of public code, documentation and web pages for it (USF range segmentation comparison,
+``compare.c``) found only the paper's abstract and later re-implementations (e.g. the Orfeo
+Toolbox's ``HooverCompareSegmentation``, which excludes a background label from both images and has no size
+floor), so this follows the paper, not a reading of ``compare.c``. The hand-made cases of
+``tests/evaluation/test_hoover.py`` pin it, one per kind with and without a small truth region.
 """
 
 from __future__ import annotations
@@ -87,7 +107,7 @@ class HooverScore:
         Scored machine regions classified as noise.
     n_over_instances, n_under_instances : int
         Over-segmentation instances (truth regions split) and under-segmentation instances (machine regions
-        covering several truth regions), all truth regions included, as ``compare.c`` counts them.
+        covering several truth regions), as ``compare.c`` counts them.
     correct_detection_rate, over_rate, under_rate, missed_rate : float
         The counts divided by ``n_truth`` (NaN when ``n_truth == 0``).
     noise_rate : float
@@ -98,6 +118,8 @@ class HooverScore:
         Category of each region: correct, over, under, missed (truth) or noise (machine), or unscored.
     truth_partners : tuple of tuple of int
         For each truth region, the machine regions of its classification (empty when missed).
+    min_truth_pixels : int
+        The scoring floor the score was made with: smaller truth regions were no truth (module notes).
     """
 
     tolerance: float
@@ -120,6 +142,7 @@ class HooverScore:
     truth_class: tuple[str, ...]
     machine_class: tuple[str, ...]
     truth_partners: tuple[tuple[int, ...], ...]
+    min_truth_pixels: int = 0
 
     def as_dict(self) -> dict[str, float]:
         """The summary keys of the results contract (DESIGN section 8)."""
@@ -198,7 +221,7 @@ def hoover_score(
     tolerance : float
         ``T`` in (0.5, 1].
     min_truth_pixels : int
-        Truth regions smaller than this are not counted in the rates (they still take part).
+        Truth regions smaller than this are no truth: their pixels count on neither side (module notes).
 
     Returns
     -------
@@ -222,7 +245,7 @@ def score_table(table: tuple[np.ndarray, ...], tolerance: float = 0.8, min_truth
     if min_truth_pixels < 0:
         raise ValueError(f"min_truth_pixels must be >= 0, got {min_truth_pixels!r}")
     T = float(tolerance)
-    machine_ids, truth_ids, msize, gsize, pairs = table
+    machine_ids, truth_ids, msize, gsize, pairs = _without_small_truth(table, min_truth_pixels)
     nM, nG = machine_ids.size, truth_ids.size
     pm, pg, po = pairs[:, 0], pairs[:, 1], pairs[:, 2].astype(np.float64)
     # candidates: (score, kind priority, truth indices, machine indices, kind)
@@ -266,12 +289,7 @@ def score_table(table: tuple[np.ndarray, ...], tolerance: float = 0.8, min_truth
         n_under_inst += kind == UNDER
 
     scored_t = gsize >= min_truth_pixels
-    # a machine region is scored unless its largest overlap is with an unscored truth region
-    scored_m = np.ones(nM, bool)
-    if pairs.size and not scored_t.all():
-        order = np.lexsort((-po, pm))
-        first = order[np.r_[True, pm[order][1:] != pm[order][:-1]]]
-        scored_m[pm[first]] = scored_t[pg[first]]
+    scored_m = msize > 0  # a machine region with no pixel on a scored truth region is not scored
     t_final = tuple(c if s else UNSCORED for c, s in zip(t_class, scored_t, strict=True))
     m_final = tuple(c if s else UNSCORED for c, s in zip(m_class, scored_m, strict=True))
     n_truth = int(scored_t.sum())
@@ -303,7 +321,20 @@ def score_table(table: tuple[np.ndarray, ...], tolerance: float = 0.8, min_truth
         truth_class=t_final,
         machine_class=m_final,
         truth_partners=tuple(t_partners),
+        min_truth_pixels=int(min_truth_pixels),
     )
+
+
+def _without_small_truth(table: tuple[np.ndarray, ...], min_truth_pixels: int) -> tuple[np.ndarray, ...]:
+    """The overlap table with the pixels of truth regions under ``min_truth_pixels`` made no truth: their
+    overlaps dropped and ``|m|`` counted again without them (the regions stay listed, with no overlap)."""
+    machine_ids, truth_ids, msize, gsize, pairs = table
+    small = gsize < min_truth_pixels
+    if not small.any():
+        return table
+    pairs = pairs[~small[pairs[:, 1]]]
+    msize = np.bincount(pairs[:, 0], weights=pairs[:, 2], minlength=machine_ids.size).astype(np.int64)
+    return machine_ids, truth_ids, msize, gsize, pairs
 
 
 MISSED_CAUSES: tuple[str, ...] = ("unlabelled", "split", "merged")
@@ -339,7 +370,8 @@ def missed_causes(machine_labels: np.ndarray, truth_labels: np.ndarray, score: H
     if not missed:
         return out
     m, g = _check_labels(machine_labels, truth_labels)
-    machine_ids, truth_ids, msize, gsize, pairs = table if table is not None else overlap_table(m, g)
+    machine_ids, truth_ids, msize, gsize, pairs = _without_small_truth(
+        table if table is not None else overlap_table(m, g), score.min_truth_pixels)
     unlabelled = np.bincount(np.searchsorted(truth_ids, g[(g >= 0) & (m < 0)]), minlength=truth_ids.size)
     T = score.tolerance
     for gid in missed:

@@ -171,7 +171,7 @@ def test_truth_minus_one_pixels_are_ignored():
     assert s2.n_machine == 0 and np.isnan(s2.noise_rate) and s2.n_missed == 1
 
 
-def test_min_truth_pixels_unscored_regions_still_absorb():
+def test_min_truth_pixels_small_regions_are_no_truth():
     truth = np.zeros((10, 10), int)
     truth[0, :3] = 1  # 3-pixel truth region
     machine = truth.copy()
@@ -179,10 +179,110 @@ def test_min_truth_pixels_unscored_regions_still_absorb():
     s = hoover_score(machine, truth, 0.8, min_truth_pixels=10)
     assert s.n_truth == 1 and s.correct_detection_rate == 1.0
     assert _cls(s, 1) == UNSCORED and _mcls(s, 5) == UNSCORED
+    # region 5 lies on the small region only: no pixel on a scored truth region, so neither noise nor counted
     assert s.n_machine == 1 and s.noise_rate == 0.0
-    # the small region's machine pixels are not noise and do not spoil the big region
     s_all = hoover_score(machine, truth, 0.8)
     assert s_all.n_truth == 2 and s_all.n_correct == 2
+
+
+# Hand-made cases, one per kind, with and without a small truth region (T = 0.8, min_truth_pixels = 10; the
+# small region ``s`` has 9 pixels). Images are single rows given as runs of (label, pixels); -1 = none. The
+# expected values are worked out from the definitions in the comments ("old": the treatment before issue 35,
+# when small regions joined the matching and were only left out of the rates).
+HAND_MADE = {
+    # O = 38 of |g| = 40 and of |m| = 38: both >= T -> correct
+    "correct": ([(0, 40)], [(5, 38), (-1, 2)],
+                {"classes": {0: CORRECT}, "machine": {5: CORRECT}, "rates": (1, 0, 0, 0, 0), "n": (1, 1)}),
+    # two halves, each wholly inside g, together all of it -> over-segmentation
+    "over": ([(0, 40)], [(1, 20), (2, 20)],
+             {"classes": {0: OVER}, "machine": {1: OVER, 2: OVER}, "rates": (0, 1, 0, 0, 0), "n": (1, 2)}),
+    # one machine region over two truth regions, each wholly inside it -> under-segmentation
+    "under": ([(0, 20), (1, 20)], [(3, 40)],
+              {"classes": {0: UNDER, 1: UNDER}, "machine": {3: UNDER}, "rates": (0, 0, 1, 0, 0), "n": (2, 1)}),
+    # O = 30 < T |g| = 32 and a single fragment: missed; the fragment (inside g, too small) is noise
+    "missed": ([(0, 40)], [(4, 30), (-1, 10)],
+               {"classes": {0: MISSED}, "machine": {4: NOISE}, "rates": (0, 0, 0, 1, 1), "n": (1, 1),
+                "causes": "unlabelled"}),
+    # m6 has 4 px on each region: not mostly inside either, neither mostly inside it -> noise; the rest correct
+    "noise": ([(0, 20), (1, 20)], [(7, 16), (6, 8), (8, 16)],
+              {"classes": {0: CORRECT, 1: CORRECT}, "machine": {7: CORRECT, 6: NOISE, 8: CORRECT},
+               "rates": (1, 0, 0, 0, 1 / 3), "n": (2, 3)}),
+    # s inside a machine region that detects g: |m| = 30 (s's 9 px are no truth), O = 30 -> correct.
+    # (old: |m| = 39, O = 30 < 31.2, and {g, s} both inside m with 39 >= 31.2 -> an under-segmentation)
+    "small in correct": ([(0, 30), (1, 9)], [(5, 39)],
+                         {"classes": {0: CORRECT, 1: UNSCORED}, "machine": {5: CORRECT}, "rates": (1, 0, 0, 0, 0),
+                          "n": (1, 1)}),
+    # s inside the second half of an over-segmentation: |m2| = 20 -> both halves inside g -> over.
+    # (old: |m2| = 29, O = 20 < 23.2: only m1 inside g, no over-segmentation -> missed)
+    "small in over": ([(0, 40), (1, 9)], [(1, 20), (2, 29)],
+                      {"classes": {0: OVER, 1: UNSCORED}, "machine": {1: OVER, 2: OVER}, "rates": (0, 1, 0, 0, 0),
+                       "n": (1, 2)}),
+    # s inside an under-segmenting region: |m| = 40, g0 and g1 inside it, 40 >= 32 -> under (old: under too,
+    # with s among its truth regions)
+    "small in under": ([(0, 20), (1, 20), (2, 9)], [(3, 49)],
+                       {"classes": {0: UNDER, 1: UNDER, 2: UNSCORED}, "machine": {3: UNDER}, "rates": (0, 0, 1, 0, 0),
+                        "n": (2, 1)}),
+    # s pads an under-segmentation: m covers g0 (10), g1 (10), 6 px of g2 (40) and s (9). |m| = 26 and
+    # 10 + 10 = 20 < T |m| = 20.8 -> no under-segmentation; (m, g0): 10 < 20.8 -> not correct: g0, g1 missed,
+    # merged; g2 = 34 px of m9 -> correct. (old: |m| = 35, 10 + 10 + 9 = 29 >= 28 -> under {g0, g1, s})
+    "small pads under": ([(0, 10), (1, 10), (3, 9), (2, 40)], [(3, 35), (9, 34)],
+                         {"classes": {0: MISSED, 1: MISSED, 2: CORRECT, 3: UNSCORED}, "machine": {3: NOISE, 9: CORRECT},
+                          "rates": (1 / 3, 0, 0, 2 / 3, 1 / 2), "n": (3, 2), "causes": "merged"}),
+    # m covers half of g and all of s: |m| = 20, O = 20 >= 16 but < T |g| = 32 -> missed, and labelling the
+    # other half would have done: unlabelled. (old: |m| = 29, O = 20 < 23.2 -> cause "merged")
+    "small in missed": ([(0, 40), (1, 9)], [(4, 20), (-1, 20), (4, 9)],
+                        {"classes": {0: MISSED, 1: UNSCORED}, "machine": {4: NOISE}, "rates": (0, 0, 0, 1, 1),
+                         "n": (1, 1), "causes": "unlabelled"}),
+    # the noise case with s in the noise region: |m6| = 8 on scored truth -> noise, counted: 1 of 3.
+    # (old: m6's largest overlap is with s, so it was left out of the noise rate: 0 of 2)
+    "small in noise": ([(0, 20), (1, 9), (2, 20)], [(7, 16), (6, 17), (8, 16)],
+                       {"classes": {0: CORRECT, 1: UNSCORED, 2: CORRECT}, "machine": {7: CORRECT, 6: NOISE, 8: CORRECT},
+                        "rates": (1, 0, 0, 0, 1 / 3), "n": (2, 3)}),
+}
+
+
+def _runs(runs: list[tuple[int, int]]) -> np.ndarray:
+    return np.concatenate([np.full(n, label) for label, n in runs])[None, :]
+
+
+@pytest.mark.parametrize("case", list(HAND_MADE))
+def test_hand_made_cases_of_each_kind(case):
+    truth_runs, machine_runs, want = HAND_MADE[case]
+    truth, machine = _runs(truth_runs), _runs(machine_runs)
+    assert truth.shape == machine.shape
+    s = hoover_score(machine, truth, 0.8, min_truth_pixels=10)
+    assert {t: _cls(s, t) for t in want["classes"]} == want["classes"]
+    assert {m: _mcls(s, m) for m in want["machine"]} == want["machine"]
+    rates = (s.correct_detection_rate, s.over_rate, s.under_rate, s.missed_rate, s.noise_rate)
+    assert rates == pytest.approx(want["rates"])
+    assert (s.n_truth, s.n_machine) == want["n"]
+    causes = missed_causes(machine, truth, s)
+    assert causes == {k: s.n_missed * (k == want.get("causes")) for k in ("unlabelled", "split", "merged")}
+    # the same figures from the sweep, which scores one overlap table at every tolerance
+    (swept,) = hoover_sweep(machine, truth, [0.8], min_truth_pixels=10)
+    assert swept == s
+
+
+def _as_no_truth(truth: np.ndarray, min_pixels: int) -> np.ndarray:
+    ids, counts = np.unique(truth[truth >= 0], return_counts=True)
+    return np.where(np.isin(truth, ids[counts < min_pixels]), -1, truth)
+
+
+@settings(max_examples=60, deadline=None)
+@given(machine=arrays(np.int64, (6, 7), elements=st.integers(-1, 4)),
+       truth=arrays(np.int64, (6, 7), elements=st.integers(-1, 5)),
+       tol=st.floats(0.51, 1.0), min_pixels=st.integers(0, 12))
+def test_small_truth_regions_score_as_no_truth(machine, truth, tol, min_pixels):
+    """A truth region under the floor scores exactly as if its pixels had no truth label."""
+    s = hoover_score(machine, truth, tol, min_truth_pixels=min_pixels)
+    ref = hoover_score(machine, _as_no_truth(truth, min_pixels), tol)
+    keys = ("n_truth", "n_machine", "n_correct", "n_over", "n_under", "n_missed", "n_noise",
+            "n_over_instances", "n_under_instances")
+    assert [getattr(s, k) for k in keys] == [getattr(ref, k) for k in keys]
+    np.testing.assert_equal([s.correct_detection_rate, s.noise_rate], [ref.correct_detection_rate, ref.noise_rate])
+    scored = {t: c for t, c in zip(s.truth_ids, s.truth_class, strict=True) if c != UNSCORED}
+    assert scored == dict(zip(ref.truth_ids, ref.truth_class, strict=True))
+    assert missed_causes(machine, truth, s) == missed_causes(machine, _as_no_truth(truth, min_pixels), ref)
 
 
 def test_overlap_table_counts():
