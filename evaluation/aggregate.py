@@ -230,6 +230,29 @@ def aggregate_pose(trials: list[dict[str, Any]], resampling: Resampling | None =
     if any("add_mm" in t for t in trials):
         add = [t.get("add_mm") for t in trials]
         out["add_mm"] = stats(add) if rs is None else _median_beside(stats(add), rs.median(add))
+    out.update(_pose_verdicts(trials, rs))
+    return out
+
+
+def _pose_verdicts(trials: list[dict[str, Any]], rs: Resampling | None) -> dict[str, Any]:
+    """What the core's ``ok`` verdicts are worth (DESIGN 11.6): how many ok poses are wrong (not a success),
+    over all trials and over the ok ones, and the reliability table of the confidence ok poses state (the
+    fraction of them that are right per confidence bin: it should be at least the confidence)."""
+    ok = np.array([bool(t.get("ok")) for t in trials])
+    right = np.array([bool(t.get("success")) for t in trials])
+    wrong = ok & ~right
+    conf = [float(t.get("confidence") or 0.0) for t, o in zip(trials, ok, strict=True) if o]
+    out: dict[str, Any] = {
+        "n_ok": int(ok.sum()),
+        "ok_wrong": int(wrong.sum()),
+        "ok_wrong_rate": float(wrong.mean()) if len(trials) else None,
+        "ok_precision": float(right[ok].mean()) if ok.any() else None,
+        "reliability": reliability_table(["right"] * len(conf), ["right" if r else "wrong" for r in right[ok]],
+                                         conf, RELIABILITY_BINS),
+    }
+    if rs is not None:
+        out = beside(out, {"ok_wrong_rate": rs.ratio(wrong, np.ones(len(trials))),
+                           "ok_precision": rs.ratio(ok & right, ok)})
     return out
 
 

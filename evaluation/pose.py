@@ -105,7 +105,10 @@ def pose_section(result, truth_T_world_sensor: np.ndarray, median_true_range_m: 
     -------
     dict with ``rotation_error_deg``, ``translation_error_mm``, ``add_mm`` (None when the core returned no
     pose), ``success`` (False then), ``constrained``, ``ok``, ``confidence``, ``free_dof``, ``initial``
-    (the same errors before ICP), ``n_hypotheses``, ``n_nodes``, ``reason``.
+    (the same errors before ICP), ``n_hypotheses``, ``n_nodes``, ``reason``, ``alternatives`` (the other
+    distinct poses the core weighed: agreement, separation from the winner, errors), ``agreement`` (the data's
+    agreement with the model at the pose, when the result has one: ``confidence`` is then the probability
+    the core gives its verdict).
     """
     G = np.asarray(truth_T_world_sensor, dtype=np.float64)
     if G.shape != (4, 4):
@@ -122,8 +125,21 @@ def pose_section(result, truth_T_world_sensor: np.ndarray, median_true_range_m: 
         "n_hypotheses": int(result.n_hypotheses),
         "n_nodes": int(result.n_nodes),
         "initial": {k: init[k] for k in ("rotation_error_deg", "translation_error_mm", "success")},
+        "alternatives": [_alternative(a, G, median_true_range_m) for a in getattr(result, "alternatives", ())],
     })
+    if getattr(result, "agreement", None) is not None:
+        out["agreement"] = float(result.agreement)
     return out
+
+
+def _alternative(alt, G: np.ndarray, median_true_range_m: float) -> dict:
+    """An alternative pose of the core (:class:`recognition.localisation.PoseAlternative`) as the record keeps
+    it: its agreement and separation from the winner, and its own errors against the truth."""
+    e = _errors(alt.T_world_sensor, G, median_true_range_m, None)
+    sep = float(alt.separation)
+    return {"agreement": float(alt.agreement), "separation": sep if math.isfinite(sep) else None,
+            "rotation_error_deg": e["rotation_error_deg"], "translation_error_mm": e["translation_error_mm"],
+            "success": e["success"]}
 
 
 def changed_features(changes: ChangeTruth) -> set[str]:

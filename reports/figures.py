@@ -185,12 +185,15 @@ def confusion_figure(confusions: Mapping[str, Mapping[str, Any]]) -> bytes:
     return to_png(fig)
 
 
-def reliability_figure(tables: Mapping[str, Sequence[Mapping[str, float]]]) -> bytes:
+def reliability_figure(tables: Mapping[str, Sequence[Mapping[str, float]]],
+                       stated: str = "stated probability of the winning label", items: str = "patches") -> bytes:
     """Reliability diagram: accuracy against the stated probability of the winning label, per bin.
 
     Parameters
     ----------
-    tables : method name -> ``classification.reliability`` rows ``[{low, high, confidence, accuracy, count}]``.
+    tables : method name -> ``classification.reliability`` (or ``pose.reliability``) rows
+        ``[{low, high, confidence, accuracy, count}]``.
+    stated, items : the x axis's title and what the bins count.
     """
     fig = new_figure(height_in=4.2)
     ax, axc = fig.subplots(2, 1, sharex=True, height_ratios=(3, 1))
@@ -212,8 +215,8 @@ def reliability_figure(tables: Mapping[str, Sequence[Mapping[str, float]]]) -> b
     ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper left")
-    axc.set_xlabel("stated probability of the winning label")
-    axc.set_ylabel("patches")
+    axc.set_xlabel(stated)
+    axc.set_ylabel(items)
     axc.set_xlim(0, 1)
     return to_png(fig)
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import sys
 from collections.abc import Mapping, Sequence
@@ -320,7 +321,8 @@ def pooled(data: Mapping[str, Any]) -> list[Condition]:
 def closest(conds: Sequence[Condition], n: int = 3) -> list[Condition]:
     """The ``n`` conditions nearest the paper's table (:func:`distance`), with enough cylinders to tell."""
     ok = [c for c in conds if c.distance is not None and c.stats.n_cyl >= MIN_CYLINDERS]
-    return sorted(ok, key=lambda c: (c.distance, c.group, c.method, c.size))[:n]
+    return sorted(ok, key=lambda c: (c.distance, c.group, c.method, c.size[0], math.inf if c.size[1] is None
+                                     else c.size[1]))[:n]
 
 
 # -- rendering ----------------------------------------------------------------------------------------------------

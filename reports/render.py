@@ -679,6 +679,18 @@ def pose_section(run: RunData) -> Section:
                             "errors" + (f"; {shared}" if shared else "") + ".", alt="pose error CDF"))
     else:
         blocks.append(Note("No per-trial pose errors in the trial records: no CDF to draw.", "info"))
+    vrows = [(Cell(m), Cell(fmt(p.get("n_ok")), "num"), ci_cell(p, "ok_precision"), Cell(fmt(p.get("ok_wrong")), "num"),
+              ci_cell(p, "ok_wrong_rate"))
+             for m, p in secs.items() if p is not None and p.get("n_ok") is not None]
+    if vrows:
+        blocks.append(Table(("method", "poses stated ok", "of them right", "ok but wrong", "ok but wrong, share of "
+                             "trials"), tuple(vrows), caption="What an ok verdict is worth (right: a success)"))
+    rel = {m: p["reliability"] for m, p in secs.items() if p is not None and p.get("reliability")}
+    if rel:
+        blocks.append(Image(figures.reliability_figure(rel, "confidence stated with an ok pose", "ok poses"),
+                            "Reliability of the pose verdicts: the fraction of ok poses that are right (a success) "
+                            "against the confidence they state; at or above the diagonal the confidence means what "
+                            "it says (below: ok poses per bin).", alt="pose reliability diagram"))
     points = pose_points(run.ok_records())
     if points:
         groups = list(dict.fromkeys([*(run.summary.get("groups") or {}), *(p["group"] for p in points)]))

@@ -29,6 +29,7 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.special import ndtr
 
 from recognition.describe import SceneDescription
 from recognition.tuning import tuned
@@ -39,10 +40,12 @@ from .icp import IcpParams, icp_refine
 from .interpretation_tree import given_match, match
 from .matching import MatchParams, make_pair, model_elements
 from .pose import estimate_pose
+from .precision import flattest_probe
 from .prediction import Prediction, predict
-from .verification import VerifyParams, agreement
+from .twins import twin_poses
+from .verification import VerifyParams, agreement, soft_agreement
 
-__all__ = ["LocaliseParams", "PoseResult", "localise", "overlap_pairings"]
+__all__ = ["LocaliseParams", "PoseAlternative", "PoseResult", "agreement_separation", "localise", "overlap_pairings"]
 
 
 @dataclass(frozen=True)
@@ -81,6 +84,16 @@ class LocaliseParams:
         quarter step around the best, each scored by its agreement on a coarse prediction (pixel stride
         ``slide_stride``, about 1 ms each on VGA); the best starts the verification and ICP (which cannot
         converge from metres away). 0: no slide (a count of places).
+    max_twins, max_twin_candidates : the poses the model's repeated structure makes look like the winner
+        (:mod:`.twins`: a twin of a matched feature where the winner puts that feature), at most
+        ``max_twin_candidates`` screened on a coarse prediction, the best ``max_twins`` refined by the quick ICP
+        and verified as alternatives. 0: none.
+    pin_angle_deg, pin_rel : the probes of the precision check (:mod:`.precision`): the final pose turned by
+        this angle about each world axis through the sensor and moved by this fraction of the median measured
+        range along each world axis - the evaluation's success tolerance, which an ok pose claims to meet.
+    pin_z : an ok pose must be separated from every probe by at least this (``d / se`` of
+        :func:`agreement_separation`): otherwise the data do not fix it within the tolerance (``not pinned``).
+    separation_z : ... and from every materially different alternative by at least this (``ambiguous``).
 
     Every field's unit and where its value was chosen: :func:`recognition.tuning.tuned` (``docs/tuning.md``).
     """
@@ -116,7 +129,21 @@ class LocaliseParams:
         16, unit="px", chosen="the first phase's default (now classic): the same peak as stride 8 on the Kinect-like "
         "trial, matching median 0.37 -> 0.22 s (740502b)")
 
+    max_twins: int = tuned(2, unit="count", chosen="not tuned: a speed bound (each costs a quick ICP)")
+    max_twin_candidates: int = tuned(64, unit="count", chosen="not tuned: a speed bound on the coarse screening")
+    pin_angle_deg: float = tuned(
+        1.0, unit="deg", chosen="the evaluation's success tolerance (DESIGN 10.6): an ok pose claims to be within it")
+    pin_rel: float = tuned(
+        0.01, unit="fraction of the median range", chosen="the evaluation's success tolerance (DESIGN 10.6)")
+    pin_z: float = tuned(1.0, unit="separation (d / se)", chosen="PLACEHOLDER")
+    separation_z: float = tuned(1.0, unit="separation (d / se)", chosen="PLACEHOLDER")
+
     def __post_init__(self):
+        if self.max_twins < 0 or self.max_twin_candidates < 0:
+            raise ValueError(f"max_twins and max_twin_candidates must be >= 0, got {self.max_twins}, "
+                             f"{self.max_twin_candidates}")
+        if self.pin_angle_deg <= 0 or self.pin_rel <= 0:
+            raise ValueError(f"pin_angle_deg and pin_rel must be > 0, got {self.pin_angle_deg}, {self.pin_rel}")
         if self.max_verify < 1:
             raise ValueError(f"max_verify must be >= 1, got {self.max_verify}")
         if not 0 <= self.min_confidence <= 1:
@@ -131,6 +158,24 @@ class LocaliseParams:
 
 
 @dataclass(frozen=True)
+class PoseAlternative:
+    """A pose materially different from the winner's (not the same within ``match.same_pose_angle_deg`` and
+    ``match.same_pose_rel``) and how well the data separate the winner from it.
+
+    Attributes
+    ----------
+    T_world_sensor : ndarray of shape (4, 4), the alternative pose (after its quick ICP when it had one).
+    agreement : float in [0, 1], its agreement with the data (:func:`recognition.localisation.agreement`).
+    separation : the winner's agreement minus this one's over the standard error of that difference
+        (:func:`agreement_separation`); ``inf`` when every shared patch agrees by the same amount.
+    """
+
+    T_world_sensor: np.ndarray
+    agreement: float
+    separation: float
+
+
+@dataclass(frozen=True)
 class PoseResult:
     """Result of :func:`localise`.
 
@@ -142,11 +187,16 @@ class PoseResult:
     cov_T_world_sensor : ndarray of shape (6, 6) or None, over (rotation vector rad, translation m), left
         perturbation in the world frame (ICP's when it ran, else the pairs').
     free_dof : int, degrees of freedom left unconstrained (0 when fully constrained).
-    confidence : float in [0, 1], agreement of the data with the model predicted at the final pose.
+    confidence : float in [0, 1], the probability the core gives its pose: ``Phi(z)`` of the least separation
+        ``z`` of the final pose from a probe at the success tolerance and from a materially different
+        alternative (:func:`agreement_separation`).
     pairings : tuple of (patch id, model feature id or None = wildcard).
     n_hypotheses : int, hypotheses from the tree; n_nodes : int, nodes it visited.
     predicted : :class:`recognition.localisation.Prediction` at the final pose (full resolution) or None.
     timing_s : dict, seconds per stage (matching, pose, verification, icp, predict).
+    agreement : float in [0, 1] or None, agreement of the data with the model predicted at the final pose.
+    alternatives : tuple of :class:`PoseAlternative`, the best of each other distinct pose the verification
+        refined, best first (empty when only one was).
     """
 
     ok: bool
@@ -161,6 +211,8 @@ class PoseResult:
     n_nodes: int
     predicted: object | None
     timing_s: dict[str, float]
+    alternatives: tuple[PoseAlternative, ...] = ()
+    agreement: float | None = None
 
 
 def _check_T(T, name: str) -> np.ndarray:
@@ -225,6 +277,34 @@ def _close(A: np.ndarray, B: np.ndarray, description: SceneDescription, angle_de
     return bool(c > math.cos(math.radians(angle_deg)) and np.linalg.norm(A[:3, 3] - B[:3, 3]) < rel * scale)
 
 
+def agreement_separation(description: SceneDescription, fractions_a: dict[int, float],
+                         fractions_b: dict[int, float]) -> tuple[float, float]:
+    """How far the data prefer pose A to pose B: ``(d, se)``, the difference of their agreements over the
+    patches both score and its standard error.
+
+    ``d`` is the ``log(pixels)``-weighted mean of the per-patch differences ``f_A - f_B`` (the weights of
+    :func:`recognition.localisation.agreement`); the patches are the independent units (neighbouring pixels of
+    one patch share its pose error and its surface, so they are not), and ``se`` is the weighted mean's
+    standard error over them, ``sqrt(n / (n - 1) sum w² (δ - d)²) / sum w``. With fewer than two shared
+    patches nothing measures the spread: ``se = inf``.
+
+    Parameters
+    ----------
+    description : the scene description (patch sizes).
+    fractions_a, fractions_b : ``{patch id: fraction of agreeing pixels}`` of the two poses.
+    """
+    size = {p.id: p.n_pixels for p in description.patches}
+    common = sorted(set(fractions_a) & set(fractions_b))
+    if len(common) < 2:
+        return 0.0, math.inf
+    w = np.array([math.log(size[k]) for k in common])
+    delta = np.array([fractions_a[k] - fractions_b[k] for k in common])
+    d = float(w @ delta / w.sum())
+    n = len(common)
+    se = float(math.sqrt(n / (n - 1) * float(np.sum(w**2 * (delta - d) ** 2))) / w.sum())
+    return d, se
+
+
 def free_translation(free_dof: int, free_basis: np.ndarray) -> np.ndarray | None:
     """The unit world direction (3,) of a pose's one free DOF when it is a pure translation, else None.
 
@@ -270,6 +350,76 @@ def slide_along(T: np.ndarray, direction: np.ndarray, points: np.ndarray, score,
     visit(np.linspace(lo, hi, steps + 1))
     visit(best_s + np.linspace(-step, step, 9))  # about the best coarse place
     return moved(best_s)
+
+
+PROBE_NAMES = tuple([f"turned {d} about {a}" for a in "xyz" for d in ("-", "+")]
+                    + [f"moved {d} along {a}" for a in "xyz" for d in ("-", "+")])
+
+
+def _twin_outcomes(description, scan, model, model_simulator, res, el, best, T_best, best_agreement,
+                   params: LocaliseParams, timing: dict[str, float]) -> list[tuple]:
+    """The poses the model's repeated structure makes look like ``T_best`` (:func:`.twins.twin_poses` of the
+    features ``best`` pairs), screened on a coarse prediction; the best ``max_twins`` of them (agreeing at least
+    ``icp_fraction`` of the winner) refined by the quick ICP and verified, as outcome tuples ``(agreement,
+    None, T_initial, T_refined, prediction, fractions)`` sorted best first. They can only be alternatives:
+    without a hypothesis of their own they have no pairs to stand on."""
+    if params.max_twins == 0:
+        return []
+    t0 = time.perf_counter()
+    matched = {str(el.feature_id[e]) for _, e in best.pairs if e >= 0}
+    same = (params.match.same_pose_angle_deg, params.match.same_pose_rel)
+    kept: list[np.ndarray] = []
+    for T in twin_poses(T_best, matched, model):
+        if len(kept) >= params.max_twin_candidates:
+            break
+        if not any(_close(T, K, description, *same) for K in [T_best, *kept]):
+            kept.append(T)
+    stride = max(params.screen_stride, params.verify.stride)
+    screen_v = replace(params.verify, rel=max(params.verify.rel, params.pre_icp_rel), stride=stride)
+    screened = sorted(((agreement(description, scan, predict(model_simulator, scan.sensor, T, stride), screen_v)[0],
+                        k, T) for k, T in enumerate(kept)), key=lambda x: (-x[0], x[1]))
+    timing["verification"] += time.perf_counter() - t0
+    out = []
+    for sc, _, T in screened[: params.max_twins]:
+        if sc < params.icp_fraction * best_agreement:
+            break
+        pred = predict(model_simulator, scan.sensor, T, params.verify.stride)
+        T_f, pred_f = T, pred
+        if params.use_icp:
+            t0 = time.perf_counter()
+            ir = icp_refine(scan, pred, model, T, params.icp_screen, None)
+            timing["icp"] += time.perf_counter() - t0
+            if ir.ok:
+                T_f = ir.T_world_sensor
+                pred_f = predict(model_simulator, scan.sensor, T_f, params.verify.stride)
+        t0 = time.perf_counter()
+        after, frac = agreement(description, scan, pred_f, params.verify)
+        timing["verification"] += time.perf_counter() - t0
+        out.append((after, None, T, T_f, pred_f, frac))
+    return sorted(out, key=lambda x: -x[0])
+
+
+def _pinned(description: SceneDescription, scan: Scan, model_simulator, T: np.ndarray,
+            params: LocaliseParams) -> tuple[float, int]:
+    """The precision check (:func:`.precision.flattest_probe`) of ``T`` at the verification's stride: the least
+    separation from a probe at the success tolerance, and which probe."""
+    valid = scan.range[np.isfinite(scan.range)]
+    step_m = params.pin_rel * (float(np.median(valid)) if len(valid) else 1.0)
+
+    def score(T_p):
+        return soft_agreement(description, scan, predict(model_simulator, scan.sensor, T_p, params.verify.stride),
+                              params.verify)
+
+    _, fractions = score(T)
+    return flattest_probe(T, fractions, score, math.radians(params.pin_angle_deg), step_m,
+                          lambda a, b: agreement_separation(description, a, b))
+
+
+def _confidence(z: float) -> float:
+    """The confidence of a pose verdict from its least separation ``z`` (from a probe at the tolerance or an
+    alternative): ``Phi(z)``, the probability that a difference measured ``z`` standard errors above 0 is
+    above 0."""
+    return float(ndtr(min(z, 8.0))) if not math.isnan(z) else 0.0
 
 
 def _model_points(model: SceneModel) -> np.ndarray:
@@ -393,16 +543,24 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
                 pred_f = predict(model_simulator, scan.sensor, T_f, params.verify.stride)
                 timing["verification"] += time.perf_counter() - t0
         t0 = time.perf_counter()
-        after, _ = agreement(description, scan, pred_f, params.verify)
+        after, frac = agreement(description, scan, pred_f, params.verify)
         timing["verification"] += time.perf_counter() - t0
-        outcomes.append((after, h, T_i, T_f, pred_f))
+        outcomes.append((after, h, T_i, T_f, pred_f, frac))
     outcomes.sort(key=lambda x: (-x[0], x[1].pose.free_dof))
-    after0, best, T_init, T_quick, pred_quick = outcomes[0]
+    after0, best, T_init, T_quick, pred_quick, frac0 = outcomes[0]
+    twins = _twin_outcomes(description, scan, model, model_simulator, res, el, best, T_quick, after0, params,
+                           timing)
+    alternatives: list[PoseAlternative] = []
+    for other in [*outcomes[1:], *twins]:
+        if any(_close(other[3], T, description, params.match.same_pose_angle_deg, params.match.same_pose_rel)
+               for T in [T_quick] + [a.T_world_sensor for a in alternatives]):
+            continue
+        d, se = agreement_separation(description, frac0, other[5])
+        alternatives.append(PoseAlternative(other[3], float(other[0]), d / se if se > 0 else math.inf))
     ambiguous = ""
-    for other in outcomes[1:]:
-        if other[0] >= after0 - params.ambiguity_margin and not _close(
-                other[3], T_quick, description, params.match.same_pose_angle_deg, params.match.same_pose_rel):
-            ambiguous = f"ambiguous: another pose agrees {other[0]:.2f} vs {after0:.2f}"
+    for alt in alternatives:
+        if alt.agreement >= after0 - params.ambiguity_margin:
+            ambiguous = f"ambiguous: another pose agrees {alt.agreement:.2f} vs {after0:.2f}"
             break
     # the winner's full ICP, against the model predicted visible from its quickly refined pose
     T_final, cov, free = T_quick, best.pose.cov_T_world_sensor, best.pose.free_dof
@@ -432,7 +590,17 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
     for pid, fid in second.items():
         pairs[pid] = fid
     pairings = tuple(sorted(pairs.items(), key=lambda kv: kv[0]))
-    ok = conf >= params.min_confidence and free == 0 and not ambiguous and not icp_note
+    t0 = time.perf_counter()
+    pin_z, pin_probe = _pinned(description, scan, model_simulator, T_final, params)
+    timing["verification"] += time.perf_counter() - t0
+    alt_z = min((a.separation for a in alternatives), default=math.inf)
+    if not ambiguous and alt_z < params.separation_z:
+        ambiguous = f"ambiguous: another pose is separated by {alt_z:.2f} < {params.separation_z} standard errors"
+    not_pinned = "" if pin_z >= params.pin_z else (
+        f"pose not pinned within {params.pin_angle_deg:g} deg / {100 * params.pin_rel:g} % of range: the probe "
+        f"{PROBE_NAMES[pin_probe]} is separated by {pin_z:.2f} < {params.pin_z} standard errors")
+    verdict_conf = _confidence(min(pin_z, alt_z))
+    ok = conf >= params.min_confidence and free == 0 and not ambiguous and not icp_note and not not_pinned
     reason = ""
     if icp_note:
         reason = "pose not refined"
@@ -444,7 +612,9 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
         reason = f"low confidence {conf:.2f} < {params.min_confidence}"
     elif ambiguous:
         reason = ambiguous
+    elif not_pinned:
+        reason = not_pinned
     if res.stop_reason and not ok:
         reason += f"; search stopped: {res.stop_reason}"
-    return PoseResult(ok, reason + icp_note if not ok else "", T_final, T_init, cov, int(free), float(conf),
-                      pairings, len(res.hypotheses), res.n_nodes, pred, timing)
+    return PoseResult(ok, reason + icp_note if not ok else "", T_final, T_init, cov, int(free), verdict_conf,
+                      pairings, len(res.hypotheses), res.n_nodes, pred, timing, tuple(alternatives), float(conf))

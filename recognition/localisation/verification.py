@@ -29,7 +29,7 @@ from sensors.range_image import Scan
 
 from .prediction import Prediction
 
-__all__ = ["VerifyParams", "agreement"]
+__all__ = ["VerifyParams", "agreement", "soft_agreement"]
 
 
 @dataclass(frozen=True)
@@ -79,6 +79,23 @@ def agreement(description: SceneDescription, scan: Scan, prediction: Prediction,
         threshold (module docstring), and ``{patch id: fraction}`` for the scored patches. 0 when nothing
         can be scored.
     """
+    return _agreement(description, scan, prediction, params, soft=False)
+
+
+def soft_agreement(description: SceneDescription, scan: Scan, prediction: Prediction,
+                   params: VerifyParams = VerifyParams()) -> tuple[float, dict[int, float]]:
+    """:func:`agreement` with each pixel counted by how well it agrees, ``max(0, 1 - (residual / threshold)²)``
+    (an Epanechnikov kernel of the range residual), instead of 0 or 1.
+
+    The count of pixels within the threshold does not change while a pose moves by less than the threshold (a
+    centimetre at a few metres); this score does, smoothly, so it can tell a pose from one moved by less
+    (:mod:`recognition.localisation.precision`).
+    """
+    return _agreement(description, scan, prediction, params, soft=True)
+
+
+def _agreement(description: SceneDescription, scan: Scan, prediction: Prediction, params: VerifyParams,
+               soft: bool) -> tuple[float, dict[int, float]]:
     s, o = prediction.stride, prediction.offset
     h, w = prediction.range.shape
     labels = description.labels[o::s, o::s][:h, :w]
@@ -87,7 +104,10 @@ def agreement(description: SceneDescription, scan: Scan, prediction: Prediction,
     pred = prediction.range
     thr = params.k_sigma * np.nan_to_num(sig, nan=0.0) + params.abs_m + params.rel * np.nan_to_num(meas, nan=0.0)
     with np.errstate(invalid="ignore"):
-        good = np.abs(meas - pred) <= thr
+        if soft:
+            good = np.nan_to_num(np.maximum(0.0, 1.0 - ((meas - pred) / thr) ** 2), nan=0.0)
+        else:
+            good = np.abs(meas - pred) <= thr
         behind = meas - pred > thr
     lab = labels.ravel()
     sel = lab >= 0

@@ -1,0 +1,140 @@
+"""Pose verdicts that mean what they say (DESIGN 11.6): the separation of two poses' agreements, the precision
+probes at the success tolerance, the smooth agreement they use, and the summary's count of ok-but-wrong poses."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from evaluation.aggregate import aggregate_pose
+from evaluation.pose import rotation_error_deg
+from recognition.localisation import (
+    LocaliseParams,
+    VerifyParams,
+    agreement,
+    agreement_separation,
+    soft_agreement,
+)
+from recognition.localisation.precision import flattest_probe, probe_poses
+
+
+def _desc(sizes):
+    return SimpleNamespace(patches=tuple(SimpleNamespace(id=i, n_pixels=n) for i, n in enumerate(sizes)))
+
+
+def test_separation_is_the_weighted_mean_difference_over_its_standard_error():
+    desc = _desc([100, 1000, 10000])
+    fa = {0: 0.9, 1: 0.8, 2: 0.7}
+    fb = {0: 0.5, 1: 0.8, 2: 0.6}
+    w = np.log([100.0, 1000.0, 10000.0])
+    delta = np.array([0.4, 0.0, 0.1])
+    d_ref = float(w @ delta / w.sum())
+    se_ref = math.sqrt(3 / 2 * float(np.sum(w**2 * (delta - d_ref) ** 2))) / w.sum()
+    d, se = agreement_separation(desc, fa, fb)
+    assert d == pytest.approx(d_ref) and se == pytest.approx(se_ref)
+    # antisymmetric, and patches scored by only one pose are left out
+    d2, se2 = agreement_separation(desc, fb, {**fa, 7: 1.0})
+    assert d2 == pytest.approx(-d_ref) and se2 == pytest.approx(se_ref)
+    assert agreement_separation(desc, {0: 1.0}, {0: 0.0}) == (0.0, math.inf)  # one patch: nothing measures spread
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(0, 1), min_size=2, max_size=8), st.floats(-0.5, 0.5))
+def test_a_uniform_shift_of_every_patch_is_measured_exactly(fractions, shift):
+    desc = _desc([50 + 10 * i for i in range(len(fractions))])
+    fa = dict(enumerate(fractions))
+    fb = {k: v - shift for k, v in fa.items()}
+    d, se = agreement_separation(desc, fa, fb)
+    assert d == pytest.approx(shift, abs=1e-12) and se == pytest.approx(0.0, abs=1e-12)
+
+
+def test_probes_turn_about_the_sensor_and_move_by_the_step():
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 2.0, 3.0]
+    probes = probe_poses(T, math.radians(1.0), 0.02)
+    assert len(probes) == 12
+    for P in probes[:6]:
+        assert rotation_error_deg(P[:3, :3], T[:3, :3]) == pytest.approx(1.0)
+        assert np.array_equal(P[:3, 3], T[:3, 3])
+    for k, P in enumerate(probes[6:]):
+        assert np.array_equal(P[:3, :3], T[:3, :3])
+        d = P[:3, 3] - T[:3, 3]
+        assert abs(d[k // 2]) == pytest.approx(0.02) and np.count_nonzero(d) == 1
+
+
+def test_the_flattest_probe_is_the_one_the_data_separate_least():
+    desc = _desc([400, 400, 400])
+    T = np.eye(4)
+
+    def score(P):  # patch fractions fall with distance from T, least along z translation
+        dr = math.radians(rotation_error_deg(P[:3, :3], T[:3, :3]))
+        dt = P[:3, 3] - T[:3, 3]
+        f = 1.0 - 10 * dr - 5 * abs(dt[0]) - 5 * abs(dt[1]) - 0.5 * abs(dt[2])
+        return f, {0: f, 1: f - 0.1 * abs(dt[2]), 2: f + 0.05 * dr}
+
+    z, k = flattest_probe(T, score(T)[1], score, math.radians(1.0), 0.01,
+                          lambda a, b: agreement_separation(desc, a, b))
+    assert k in (10, 11) and z > 0
+
+
+def test_soft_agreement_counts_each_pixel_by_its_residual():
+    shape = (10, 10)
+    desc = SimpleNamespace(labels=np.zeros(shape, np.int32), sigma=np.full(shape, 0.0),
+                           patches=(SimpleNamespace(id=0, n_pixels=100),))
+    scan = SimpleNamespace(range=np.full(shape, 2.0))
+    params = VerifyParams(stride=1, k_sigma=3.0, abs_m=0.01, rel=0.0, seen_through=0.0)
+    exact = SimpleNamespace(stride=1, offset=0, range=np.full(shape, 2.0))
+    half = SimpleNamespace(stride=1, offset=0, range=np.full(shape, 2.005))  # half the 10 mm threshold
+    assert soft_agreement(desc, scan, exact, params)[0] == pytest.approx(1.0)
+    assert soft_agreement(desc, scan, half, params)[0] == pytest.approx(0.75)
+    assert agreement(desc, scan, half, params)[0] == pytest.approx(1.0)  # the count does not see it
+
+
+def test_localise_params_validate_the_probes():
+    with pytest.raises(ValueError, match="pin_angle_deg"):
+        LocaliseParams(pin_rel=0.0)
+
+
+def test_summary_counts_ok_poses_that_are_wrong_and_their_reliability():
+    trials = [{"ok": True, "success": True, "confidence": 0.95, "rotation_error_deg": 0.1, "translation_error_mm": 1},
+              {"ok": True, "success": False, "confidence": 0.92, "rotation_error_deg": 9.0, "translation_error_mm": 90},
+              {"ok": False, "success": True, "confidence": 0.3, "rotation_error_deg": 0.1, "translation_error_mm": 1},
+              {"ok": False, "success": False, "confidence": 0.1, "rotation_error_deg": 90, "translation_error_mm": 900}]
+    out = aggregate_pose(trials)
+    assert out["n_ok"] == 2 and out["ok_wrong"] == 1
+    assert out["ok_wrong_rate"] == pytest.approx(0.25) and out["ok_precision"] == pytest.approx(0.5)
+    (row,) = out["reliability"]  # both ok poses in the 0.9-1.0 bin
+    assert row["count"] == 2 and row["accuracy"] == pytest.approx(0.5) and row["confidence"] == pytest.approx(0.935)
+
+
+def test_twin_poses_put_a_twin_where_the_pose_put_the_feature():
+    from recognition.localisation.twins import twin_poses
+    from scenes.features import Cylinder, Plane
+    from scenes.model import Object, SceneModel
+
+    a = Plane("a", centre=np.array([0.0, 0.0, 1.0]), normal=np.array([1.0, 0, 0]), u_axis=np.array([0, 1.0, 0]),
+              half_size=(0.5, 1.0))
+    b = Plane("b", centre=np.array([5.0, 2.0, 1.0]), normal=np.array([-1.0, 0, 0]), u_axis=np.array([0, 1.0, 0]),
+              half_size=(1.0, 0.5))  # the same rectangle turned: a twin
+    c = Plane("c", centre=np.array([9.0, 0.0, 1.0]), normal=np.array([1.0, 0, 0]), u_axis=np.array([0, 1.0, 0]),
+              half_size=(0.5, 2.0))  # another size: not a twin
+    pipe = Cylinder("p", centre=np.array([0.0, 3.0, 1.0]), axis=np.array([0, 0, 1.0]), radius=0.1, length=2.0)
+    model = SceneModel("m", (Object("o1", "cabinet", (a, b, c)), Object("o2", "pipe_run", (pipe,))))
+    T = np.eye(4)
+    T[:3, 3] = [2.0, 0.5, 1.2]  # the sensor, 2 m in front of a
+    poses = twin_poses(T, ["a"], model)
+    assert len(poses) == 3  # a turned about its normal, b both ways; nothing for c or the pipe
+    p_a = np.linalg.inv(T) @ np.r_[a.centre, 1.0]  # where the sensor sees a's centre
+    seen = [P @ p_a for P in poses]
+    assert sum(np.allclose(x[:3], b.centre) for x in seen) == 2 and sum(np.allclose(x[:3], a.centre) for x in seen) == 1
+    for P in poses:  # rigid, and the sensor faces the twin as it faced a
+        assert np.allclose(P[:3, :3] @ P[:3, :3].T, np.eye(3)) and np.isclose(np.linalg.det(P[:3, :3]), 1.0)
+    (flip,) = twin_poses(T, ["p"], model)  # the pipe's own other axis direction: turned 180 deg about its centre
+    p_c = np.linalg.inv(T) @ np.r_[pipe.centre, 1.0]
+    assert np.allclose((flip @ p_c)[:3], pipe.centre) and rotation_error_deg(flip[:3, :3], T[:3, :3]) == \
+        pytest.approx(180.0)
