@@ -44,6 +44,7 @@ from evaluation.classification import (
 )
 from evaluation.intervals import CalibrationGap, MeanOfRatios, Ratio, Resampling
 from evaluation.metrics import HOOVER_RATES, MACRO_LABELS, MIN_SCORED_PIXELS, PER_LABEL_ORDER
+from scenes.vocabulary import ALTERED, UNCHANGED
 
 CI_SUFFIX = "_ci95"
 RELIABILITY_BINS = 10
@@ -300,6 +301,46 @@ def prf_intervals(scores: dict[str, Any], truth: Sequence[str], predicted: Seque
     return beside({**scores, "per_label": per}, {"macro_f1": rs.of(macro)})
 
 
+def altered_by_kind(features: list[dict[str, Any]], rs: Resampling | None = None) -> dict[str, Any] | None:
+    """Precision, recall, F1 and support of ``altered`` among the features of each kind of object (the rows'
+    ``kind``: ``cabinet``, ``tank``, ``sphere_tank``, ``wall``, ``pipe_run``, ...), for the kinds with an altered
+    feature in the truth or the prediction; with ``rs`` (one item per feature row) their intervals. None when no
+    row says its kind (records written before kinds were recorded)."""
+    kinds = sorted({f["kind"] for f in features if "kind" in f and ALTERED in (f["truth"], f["predicted"])})
+    if not any("kind" in f for f in features):
+        return None
+    k = np.array([f.get("kind") for f in features], dtype=object)
+    t = np.array([f["truth"] == ALTERED for f in features], dtype=bool)
+    p = np.array([f["predicted"] == ALTERED for f in features], dtype=bool)
+    out: dict[str, Any] = {}
+    for kind in kinds:
+        m = k == kind
+        tp, n_pred, n_true = int(np.sum(m & t & p)), int(np.sum(m & p)), int(np.sum(m & t))
+        prec = tp / n_pred if n_pred else None
+        rec = tp / n_true if n_true else None
+        row: dict[str, Any] = {"precision": prec, "recall": rec, "f1": 2 * tp / (n_pred + n_true), "support": n_true}
+        if rs is not None:
+            tps, preds, trues = rs.sums(np.stack([m & t & p, m & p, m & t], axis=1).astype(np.float64)).T
+            row = beside(row, {"precision": rs.of(Ratio(tps, preds)), "recall": rs.of(Ratio(tps, trues)),
+                               "f1": rs.of(Ratio(2 * tps, preds + trues))})
+        out[kind] = row
+    return out
+
+
+def false_alarms(features: list[dict[str, Any]], rs: Resampling | None = None) -> dict[str, Any]:
+    """``false_alarm_rate``: the share of the observable features that did not change (truth ``unchanged``)
+    labelled a change (moved, missing, new or altered); ``n_unchanged`` of them. With ``rs`` (one item per
+    feature row) its interval."""
+    unchanged = np.array([f["truth"] == UNCHANGED for f in features], dtype=bool)
+    alarm = unchanged & np.array([f["predicted"] in MACRO_LABELS for f in features], dtype=bool)
+    n = int(unchanged.sum())
+    out: dict[str, Any] = {"false_alarm_rate": float(alarm.sum()) / n if n else None}
+    if rs is not None:
+        out = beside(out, {"false_alarm_rate": rs.ratio(alarm.astype(np.float64), unchanged.astype(np.float64))})
+    out["n_unchanged"] = n
+    return out
+
+
 def aggregate_change(trials: list[dict[str, Any]], resampling: Resampling | None = None) -> dict[str, Any]:
     """Per-label and macro-F1 scores over the features (and objects) of every trial, and the displacement
     error of moved features; with ``resampling`` (one item per trial) their intervals."""
@@ -309,6 +350,9 @@ def aggregate_change(trials: list[dict[str, Any]], resampling: Resampling | None
     out = prf(ft, fp)
     if rs is not None:
         out = prf_intervals(out, ft, fp, rs.expand([len(t["features"]) for t in trials]))
+    frs = None if rs is None else rs.expand([len(t["features"]) for t in trials])
+    out["altered_by_kind"] = altered_by_kind(feats, frs)
+    out.update(false_alarms(feats, frs))
     objs = [o for t in trials for o in t.get("objects", [])]
     ot, op = [o["truth"] for o in objs], [o["predicted"] for o in objs]
     out["objects"] = prf(ot, op) if objs else None

@@ -19,7 +19,8 @@ import numpy as np
 from evaluation.metrics import MIN_SCORED_PIXELS
 from recognition.change import ChangeResult
 from recognition.localisation import Prediction, pixels_by_feature
-from scenes.perturb import ChangeTruth
+from scenes.model import SceneModel
+from scenes.perturb import ChangeTruth, change_kind
 from scenes.vocabulary import CHANGE_MAP_LABELS, NEW
 from sensors.range_image import FLAG_DROPOUT, ScanTruth
 
@@ -64,14 +65,22 @@ def _measured_pixels_by_feature(truth: ScanTruth) -> dict[str, np.ndarray]:
     return pixels_by_feature(sid, tuple(s.feature_id for s in truth.surfaces))
 
 
+def kinds_of_features(*models: SceneModel) -> dict[str, str]:
+    """The change kind (:func:`scenes.perturb.change_kind`: ``cabinet``, ``tank``, ``sphere_tank``, ``wall``,
+    ``pipe_run``, ...) of every feature of the given models, by feature id: what ``altered_by_kind`` groups by."""
+    return {f.id: change_kind(o) for m in models for o in m.objects for f in o.features}
+
+
 def change_section(result: ChangeResult, truth: ScanTruth, change_truth: ChangeTruth,
                    apriori_at_truth: Prediction, object_of: dict[str, str],
-                   min_pixels: int = MIN_PIXELS, observable: dict[str, str] | None = None) -> dict[str, Any]:
+                   min_pixels: int = MIN_PIXELS, observable: dict[str, str] | None = None,
+                   kind_of: dict[str, str] | None = None) -> dict[str, Any]:
     """Per-trial change record: (truth, predicted) pairs for observable features and objects, false ``new``
     patches, and the displacement error of correctly labelled moved features.
 
     ``observable``: :func:`observable_features` of this truth, when the caller has it already (it depends on
-    the truth only, so every method of a trial shares it)."""
+    the truth only, so every method of a trial shares it). ``kind_of``: the change kind of each a priori
+    feature's object (:func:`kinds_of_features`); each feature row then says its ``kind``."""
     if observable is None:
         observable = observable_features(truth, change_truth, apriori_at_truth, min_pixels)
     actual_pix = _measured_pixels_by_feature(truth)
@@ -85,7 +94,10 @@ def change_section(result: ChangeResult, truth: ScanTruth, change_truth: ChangeT
             pred = "new" if share >= 0.5 else "none"
         else:
             pred = result.features[fid].label if fid in result.features else "none"
-        features.append({"feature": fid, "truth": t, "predicted": pred})
+        row = {"feature": fid, "truth": t, "predicted": pred}
+        if kind_of is not None and t != "new" and fid in kind_of:
+            row["kind"] = kind_of[fid]
+        features.append(row)
     # new patches lying mostly on a priori truth surfaces that are not new: false alarms
     sid_flat = truth.surface_id.reshape(-1)
     new_truth = set(change_truth.new_features)

@@ -211,6 +211,9 @@ METRICS: tuple[Metric, ...] = (
     *_prf("change.objects.per_label", "per-label (objects)"),
     Metric("change.objects.per_label.*.f1", "per-label F1 (objects)", "higher", "rate"),
     *_stats("change.displacement_error_mm", "displacement error of moved features", "mm", 1),
+    Metric("change.altered_by_kind.*.f1", "altered F1 by kind of object", "higher", "rate"),
+    *_prf("change.altered_by_kind", "altered by kind of object"),
+    Metric("change.false_alarm_rate", "false alarms on unchanged features", "lower", "rate"),
     # the run
     Metric("n_failed", "failed trials", "lower", "count", digits=0, headline=True, per_method=False),
     Metric("timing_s.total.median", "time per trial, median", "lower", "time", "s", 2, headline=True,
@@ -240,6 +243,8 @@ INFORMATIVE: tuple[Informative, ...] = (
     Informative("pose.n_ok", "how many trials have an ok pose"),
     Informative("change.per_label.*.support", "how many truth features of the label"),
     Informative("change.objects.per_label.*.support", "how many truth objects of the label"),
+    Informative("change.altered_by_kind.*.support", "how many truth altered features of the kind of object"),
+    Informative("change.n_unchanged", "how many observable features did not change (the false alarms' base)"),
     # whole subtrees: tables and records, not figures
     Informative("segmentation.sweep.**", "the Hoover rates over the tolerance sweep (a report figure)"),
     Informative("segmentation.by_size.**", "correct detection per region size (a report table)"),

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.change import change_section, observable_features
+from evaluation.change import change_section, kinds_of_features, observable_features
 from evaluation.oracles import truth_classification, truth_pairings, truth_segmentation
 from evaluation.patches import classification_section, segmentation_section
 from evaluation.pose import changed_features, constrains_pose, pose_section
@@ -262,6 +262,7 @@ class TrialContext:
         self._segmentation_sections: dict[int, tuple[np.ndarray, dict[str, Any]]] = {}
         self.object_of = {f.id: o.id for m in (prepared.apriori, prepared.actual) for o in m.objects
                           for f in o.features}
+        self.kind_of = kinds_of_features(prepared.apriori)  # altered F1 by kind (change.altered_by_kind)
         self.constrained = bool(constrains_pose(truth, prepared.actual,
                                                 exclude=changed_features(prepared.change_truth)))
 
@@ -365,7 +366,7 @@ def run_pipeline(ctx: TrialContext, params: CoreParams, oracle: str | None = Non
                                     predictor=prepared.predictor, params=params.change)
         timing["change"] = time.perf_counter() - t0 - result.timing_s.get("predict", 0.0)
         record["change"] = change_section(result, truth, prepared.change_truth, ctx.apriori_at_truth, ctx.object_of,
-                                          observable=ctx.observable)
+                                          observable=ctx.observable, kind_of=ctx.kind_of)
     return record, desc
 
 

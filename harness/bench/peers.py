@@ -82,7 +82,8 @@ def _description_row(desc, ctx) -> dict[str, float]:
 def _change_counts(result, ctx) -> dict[str, np.ndarray]:
     from evaluation.change import change_section
 
-    sec = change_section(result, ctx.truth, ctx.prepared.change_truth, ctx.apriori_at_truth, ctx.object_of)
+    sec = change_section(result, ctx.truth, ctx.prepared.change_truth, ctx.apriori_at_truth, ctx.object_of,
+                         kind_of=ctx.kind_of)
     out = {}
     for lab in CHANGE_LABELS:
         tp = sum(r["truth"] == lab and r["predicted"] == lab for r in sec["features"])

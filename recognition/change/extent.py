@@ -1,0 +1,171 @@
+"""Extents of present features: a face or a cylinder body that reaches beyond the model's edge, or ends before it.
+
+A resized box (a cabinet of another height, a wall of another length) keeps most of its faces in their planes:
+what changed is where they end. A tank of another height keeps its body on its axis, longer or shorter. The
+evidence is along the feature's *extent axes* (a rectangle's two in-plane axes, a cylinder's axis), edge by
+edge, in the feature's own coordinates:
+
+* **grown**: points of the feature's patches that the model does not explain (in front of or behind the
+  predicted surface) yet lie on the feature's unbounded surface within the allowance, beyond one of its edges
+  (and within the other axis's extent): the surface goes on where the model says it ends;
+* **shrunk**: the feature's explained pixels stop short of an edge, and the model's pixels of the feature beyond
+  that observed edge show the background (revealed), not an occluder: the surface ends where the model says
+  it goes on.
+
+Positions along an axis are those of each pixel's ray on the model's unbounded surface (noise-free up to the
+pose), so an edge is located to a pixel footprint whatever the range noise. An edge moved when enough pixels
+lie beyond it by more than a margin: ``k_sigma`` pose sigmas at the pixel's range plus ``extent_margin_px``
+pixel footprints (the footprint on the surface: range times the ray spacing over the cosine of incidence).
+A rigid slide within the plane grows one edge of an axis and shrinks the opposite one: that is a move, not a
+change of extent, and gives no verdict here.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from scenes.features import Cylinder, Feature, Plane
+
+GROWN, SHRUNK = "grown", "shrunk"
+
+
+@dataclass(frozen=True)
+class EdgeChange:
+    """One edge of a feature that moved: extent ``axis`` (0: a plane's u or a cylinder's axis, 1: a plane's v),
+    ``side`` (+1 or -1 along it), ``kind`` (``grown`` or ``shrunk``), ``amount_m`` (median distance beyond the
+    model's edge of the grown pixels, or the gap between the observed and the model's edge) and ``n_pixels``
+    (the pixels beyond the edge that say so)."""
+
+    axis: int
+    side: int
+    kind: str
+    amount_m: float
+    n_pixels: int
+
+
+def has_extent(f: Feature) -> bool:
+    return isinstance(f, Plane | Cylinder)
+
+
+def _axes(f: Feature) -> list[tuple[np.ndarray, float]]:
+    """The extent axes of ``f`` (unit direction, half extent) about its centre."""
+    if isinstance(f, Plane):
+        return [(f.u_axis, f.half_size[0]), (f.v_axis, f.half_size[1])]
+    if isinstance(f, Cylinder):
+        return [(f.axis, f.length / 2)]
+    raise TypeError(type(f).__name__)
+
+
+def unbounded_distance(f: Feature, pts: np.ndarray) -> np.ndarray:
+    """Distance (N,) of world points to the feature's unbounded surface (a plane, a cylinder of infinite length)."""
+    if isinstance(f, Plane | Cylinder):
+        return np.abs(f.signed_distance(pts))
+    raise TypeError(type(f).__name__)
+
+
+def ray_hits(f: Feature, origin: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    """Points (N, 3) where world rays (N, 3, unit) from ``origin`` (3,) first meet the feature's unbounded
+    surface (NaN where they do not, or behind the origin)."""
+    out = np.full(rays.shape, np.nan)
+    if isinstance(f, Plane):
+        den = rays @ f.normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = ((f.centre - origin) @ f.normal) / den
+        ok = np.isfinite(t) & (t > 0)
+    elif isinstance(f, Cylinder):
+        w = origin - f.centre
+        dp = rays - np.outer(rays @ f.axis, f.axis)
+        wp = w - (w @ f.axis) * f.axis
+        a = np.einsum("ij,ij->i", dp, dp)
+        b = 2 * dp @ wp
+        c = float(wp @ wp) - f.radius**2
+        disc = b * b - 4 * a * c
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sq = np.sqrt(np.maximum(disc, 0.0))
+            t1, t2 = (-b - sq) / (2 * a), (-b + sq) / (2 * a)
+        t = np.where(t1 > 0, t1, t2)
+        ok = (disc >= 0) & np.isfinite(t) & (t > 0)
+    else:
+        raise TypeError(type(f).__name__)
+    out[ok] = origin + t[ok, None] * rays[ok]
+    return out
+
+
+def extent_changes(f: Feature, origin: np.ndarray, rays_w: np.ndarray, data_w: np.ndarray, margin: np.ndarray,
+                   allowance: np.ndarray, found: np.ndarray, revealed: np.ndarray, beyond_predicted: np.ndarray,
+                   candidates: np.ndarray, min_pixels: int, revealed_share: float,
+                   tolerance: float) -> list[EdgeChange]:
+    """The edges of feature ``f`` that moved (:class:`EdgeChange`), from flat pixel indices.
+
+    Parameters
+    ----------
+    origin : (3,) the sensor's position in the world frame; ``rays_w`` (P, 3) every pixel's world ray.
+    data_w : (P, 3) the measured points in the world frame; ``margin``, ``allowance`` (P,) metres per pixel.
+    found : the feature's predicted pixels that its surface explains; ``revealed``: those that show the
+        background; ``beyond_predicted``: all of its predicted pixels (any class).
+    candidates : pixels of the feature's patches that the model does not explain (grown surface, maybe).
+    min_pixels : fewest pixels beyond an edge that move it.
+    revealed_share : share of the predicted pixels beyond an observed edge that must show the background.
+    tolerance : least change of an edge, as a fraction of the feature's dimension along that axis (a pose a few
+        millimetres off shifts every edge a little; a resized part changes by a share of its size).
+    """
+    axes = _axes(f)
+    hit_found = ray_hits(f, origin, rays_w[found])
+    hit_pred = ray_hits(f, origin, rays_w[beyond_predicted])
+    on = candidates[unbounded_distance(f, data_w[candidates]) <= allowance[candidates]]
+    hit_cand = ray_hits(f, origin, rays_w[on])
+    keep = np.all(np.isfinite(hit_cand), axis=1)
+    on, hit_cand = on[keep], hit_cand[keep]
+    is_rev = np.isin(beyond_predicted, revealed)
+    changes: list[EdgeChange] = []
+    for i, (a, h) in enumerate(axes):
+        x_found = (hit_found - f.centre) @ a
+        x_pred = (hit_pred - f.centre) @ a
+        x_cand = (hit_cand - f.centre) @ a
+        if len(axes) > 1:  # within the other axis's extent (beyond this edge, not past a corner)
+            b, hb = axes[1 - i]
+            in_band = np.abs((hit_cand - f.centre) @ b) <= hb + margin[on]
+        else:
+            in_band = np.ones(len(on), dtype=bool)
+        per_axis: list[EdgeChange] = []
+        for side in (1, -1):
+            least = tolerance * 2 * h
+            excess = side * x_cand - h
+            grown = in_band & (excess > margin[on])
+            if int(np.count_nonzero(grown)) >= min_pixels:
+                amount = float(np.median(excess[grown]))
+                if amount > least:
+                    per_axis.append(EdgeChange(i, side, GROWN, amount, int(grown.sum())))
+                continue
+            xf = side * x_found[np.isfinite(x_found)]
+            if len(xf) < min_pixels:
+                continue
+            edge = float(np.quantile(xf, 0.995))  # the observed edge (a stray explained pixel does not move it)
+            gap = h - edge
+            past = np.isfinite(x_pred) & (side * x_pred > edge + margin[beyond_predicted])
+            n_past, n_rev = int(past.sum()), int(np.count_nonzero(past & is_rev))
+            if n_past and gap > max(float(np.median(margin[beyond_predicted[past]])), least) and n_rev >= min_pixels \
+                    and n_rev >= revealed_share * n_past:
+                per_axis.append(EdgeChange(i, side, SHRUNK, gap, n_rev))
+        kinds = {e.kind for e in per_axis}
+        if len(per_axis) == 2 and kinds == {GROWN, SHRUNK}:
+            continue  # one edge on, the opposite one back: a slide within the surface, not another extent
+        changes.extend(per_axis)
+    return changes
+
+
+def footprint(rays: np.ndarray) -> np.ndarray:
+    """Angular spacing (H, W) in radians between each pixel's ray and its neighbours' (the larger of the
+    horizontal and vertical spacing), from unit rays (H, W, 3)."""
+    def angle(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+        return np.arccos(np.clip(np.sum(p * q, axis=-1), -1.0, 1.0))
+
+    h, w = rays.shape[:2]
+    du = angle(rays[:, 1:], rays[:, :-1]) if w > 1 else np.zeros((h, 0))
+    dv = angle(rays[1:], rays[:-1]) if h > 1 else np.zeros((0, w))
+    su = np.pad(du, ((0, 0), (0, 1)), mode="edge") if w > 1 else np.full((h, w), math.nan)
+    sv = np.pad(dv, ((0, 1), (0, 0)), mode="edge") if h > 1 else np.full((h, w), math.nan)
+    return np.fmax(su, sv)
