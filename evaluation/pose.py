@@ -125,9 +125,9 @@ def pose_section(result, truth_T_world_sensor: np.ndarray, median_true_range_m: 
         "n_hypotheses": int(result.n_hypotheses),
         "n_nodes": int(result.n_nodes),
         "initial": {k: init[k] for k in ("rotation_error_deg", "translation_error_mm", "success")},
-        "alternatives": [_alternative(a, G, median_true_range_m) for a in getattr(result, "alternatives", ())],
+        "alternatives": [_alternative(a, G, median_true_range_m) for a in result.alternatives],
     })
-    if getattr(result, "agreement", None) is not None:
+    if result.agreement is not None:
         out["agreement"] = float(result.agreement)
     return out
 

@@ -40,7 +40,7 @@ from .icp import IcpParams, icp_refine
 from .interpretation_tree import given_match, match
 from .matching import MatchParams, make_pair, model_elements
 from .pose import estimate_pose
-from .precision import flattest_probe
+from .precision import flattest_probe, separation_z
 from .prediction import Prediction, predict
 from .twins import twin_poses
 from .verification import VerifyParams, agreement, soft_agreement
@@ -135,8 +135,11 @@ class LocaliseParams:
         1.0, unit="deg", chosen="the evaluation's success tolerance (DESIGN 10.6): an ok pose claims to be within it")
     pin_rel: float = tuned(
         0.01, unit="fraction of the median range", chosen="the evaluation's success tolerance (DESIGN 10.6)")
-    pin_z: float = tuned(1.0, unit="separation (d / se)", chosen="PLACEHOLDER")
-    separation_z: float = tuned(1.0, unit="separation (d / se)", chosen="PLACEHOLDER")
+    pin_z: float = tuned(
+        1.0, unit="separation (d / se)", chosen="not tuned: one standard error; checked on calibration (an in-process "
+        "collection of 93 trials at 9dc872f's parent): ok-but-wrong poses 6 -> 2 with separation_z")
+    separation_z: float = tuned(
+        1.0, unit="separation (d / se)", chosen="not tuned: one standard error; checked on calibration with pin_z")
 
     def __post_init__(self):
         if self.max_twins < 0 or self.max_twin_candidates < 0:
@@ -167,7 +170,7 @@ class PoseAlternative:
     T_world_sensor : ndarray of shape (4, 4), the alternative pose (after its quick ICP when it had one).
     agreement : float in [0, 1], its agreement with the data (:func:`recognition.localisation.agreement`).
     separation : the winner's agreement minus this one's over the standard error of that difference
-        (:func:`agreement_separation`); ``inf`` when every shared patch agrees by the same amount.
+        (:func:`agreement_separation`, :func:`.precision.separation_z`).
     """
 
     T_world_sensor: np.ndarray
@@ -356,8 +359,8 @@ PROBE_NAMES = tuple([f"turned {d} about {a}" for a in "xyz" for d in ("-", "+")]
                     + [f"moved {d} along {a}" for a in "xyz" for d in ("-", "+")])
 
 
-def _twin_outcomes(description, scan, model, model_simulator, res, el, best, T_best, best_agreement,
-                   params: LocaliseParams, timing: dict[str, float]) -> list[tuple]:
+def _twin_outcomes(description, scan, model, model_simulator, el, best, T_best, best_agreement,
+                   screen_v: VerifyParams, params: LocaliseParams, timing: dict[str, float]) -> list[tuple]:
     """The poses the model's repeated structure makes look like ``T_best`` (:func:`.twins.twin_poses` of the
     features ``best`` pairs), screened on a coarse prediction; the best ``max_twins`` of them (agreeing at least
     ``icp_fraction`` of the winner) refined by the quick ICP and verified, as outcome tuples ``(agreement,
@@ -374,29 +377,39 @@ def _twin_outcomes(description, scan, model, model_simulator, res, el, best, T_b
             break
         if not any(_close(T, K, description, *same) for K in [T_best, *kept]):
             kept.append(T)
-    stride = max(params.screen_stride, params.verify.stride)
-    screen_v = replace(params.verify, rel=max(params.verify.rel, params.pre_icp_rel), stride=stride)
-    screened = sorted(((agreement(description, scan, predict(model_simulator, scan.sensor, T, stride), screen_v)[0],
-                        k, T) for k, T in enumerate(kept)), key=lambda x: (-x[0], x[1]))
+    screened = sorted(((agreement(description, scan, predict(model_simulator, scan.sensor, T, screen_v.stride),
+                                  screen_v)[0], k, T) for k, T in enumerate(kept)), key=lambda x: (-x[0], x[1]))
     timing["verification"] += time.perf_counter() - t0
     out = []
     for sc, _, T in screened[: params.max_twins]:
         if sc < params.icp_fraction * best_agreement:
             break
         pred = predict(model_simulator, scan.sensor, T, params.verify.stride)
-        T_f, pred_f = T, pred
-        if params.use_icp:
-            t0 = time.perf_counter()
-            ir = icp_refine(scan, pred, model, T, params.icp_screen, None)
-            timing["icp"] += time.perf_counter() - t0
-            if ir.ok:
-                T_f = ir.T_world_sensor
-                pred_f = predict(model_simulator, scan.sensor, T_f, params.verify.stride)
-        t0 = time.perf_counter()
-        after, frac = agreement(description, scan, pred_f, params.verify)
-        timing["verification"] += time.perf_counter() - t0
+        after, T_f, pred_f, frac = _quick_refine(description, scan, model, model_simulator, pred, None, params,
+                                                 timing)
         out.append((after, None, T, T_f, pred_f, frac))
     return sorted(out, key=lambda x: -x[0])
+
+
+def _quick_refine(description, scan, model, model_simulator, pred: Prediction, mask: np.ndarray | None,
+                  params: LocaliseParams, timing: dict[str, float]) -> tuple[float, np.ndarray, Prediction, dict]:
+    """The quick ICP (``params.icp_screen``) of the pose of ``pred`` with the source pixels ``mask``, and the
+    agreement after it: ``(agreement, T after, its prediction, per-patch fractions)`` (the pose of ``pred`` when
+    ICP is off or fails)."""
+    T_f, pred_f = pred.T_world_sensor, pred
+    if params.use_icp:
+        t0 = time.perf_counter()
+        ir = icp_refine(scan, pred, model, pred.T_world_sensor, params.icp_screen, mask)
+        timing["icp"] += time.perf_counter() - t0
+        if ir.ok:
+            t0 = time.perf_counter()
+            T_f = ir.T_world_sensor
+            pred_f = predict(model_simulator, scan.sensor, T_f, params.verify.stride)
+            timing["verification"] += time.perf_counter() - t0
+    t0 = time.perf_counter()
+    after, frac = agreement(description, scan, pred_f, params.verify)
+    timing["verification"] += time.perf_counter() - t0
+    return after, T_f, pred_f, frac
 
 
 def _pinned(description: SceneDescription, scan: Scan, model_simulator, T: np.ndarray,
@@ -531,32 +544,20 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
                 outcomes[0][0] - score >= params.accept_margin:
             break  # far ahead of every remaining hypothesis even after their ICP could help them
         T_i = pred_h.T_world_sensor
-        T_f, pred_f = T_i, pred_h
-        if params.use_icp:
-            t0 = time.perf_counter()
-            ir = icp_refine(scan, pred_h, model, T_i, params.icp_screen,
-                            _explained(description, res.matchable, res.items, h))
-            timing["icp"] += time.perf_counter() - t0
-            if ir.ok:
-                t0 = time.perf_counter()
-                T_f = ir.T_world_sensor
-                pred_f = predict(model_simulator, scan.sensor, T_f, params.verify.stride)
-                timing["verification"] += time.perf_counter() - t0
-        t0 = time.perf_counter()
-        after, frac = agreement(description, scan, pred_f, params.verify)
-        timing["verification"] += time.perf_counter() - t0
+        after, T_f, pred_f, frac = _quick_refine(description, scan, model, model_simulator, pred_h,
+                                                 _explained(description, res.matchable, res.items, h), params, timing)
         outcomes.append((after, h, T_i, T_f, pred_f, frac))
     outcomes.sort(key=lambda x: (-x[0], x[1].pose.free_dof))
     after0, best, T_init, T_quick, pred_quick, frac0 = outcomes[0]
-    twins = _twin_outcomes(description, scan, model, model_simulator, res, el, best, T_quick, after0, params,
+    twins = _twin_outcomes(description, scan, model, model_simulator, el, best, T_quick, after0, screen_v, params,
                            timing)
     alternatives: list[PoseAlternative] = []
     for other in [*outcomes[1:], *twins]:
         if any(_close(other[3], T, description, params.match.same_pose_angle_deg, params.match.same_pose_rel)
                for T in [T_quick] + [a.T_world_sensor for a in alternatives]):
             continue
-        d, se = agreement_separation(description, frac0, other[5])
-        alternatives.append(PoseAlternative(other[3], float(other[0]), d / se if se > 0 else math.inf))
+        alternatives.append(PoseAlternative(other[3], float(other[0]),
+                                            separation_z(*agreement_separation(description, frac0, other[5]))))
     ambiguous = ""
     for alt in alternatives:
         if alt.agreement >= after0 - params.ambiguity_margin:

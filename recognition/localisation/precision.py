@@ -25,7 +25,7 @@ import numpy as np
 
 from .pose import exp_so3
 
-__all__ = ["probe_poses", "flattest_probe"]
+__all__ = ["probe_poses", "separation_z", "flattest_probe"]
 
 Score = Callable[[np.ndarray], tuple[float, dict[int, float]]]
 
@@ -49,6 +49,14 @@ def probe_poses(T: np.ndarray, step_rad: float, step_m: float) -> list[np.ndarra
     return out
 
 
+def separation_z(d: float, se: float) -> float:
+    """``d / se``, a difference over its standard error; with ``se = 0`` (every patch differs by the same amount)
+    ``±inf`` by the sign of ``d``, 0 for no difference."""
+    if se > 0:
+        return d / se
+    return math.inf if d > 0 else (-math.inf if d < 0 else 0.0)
+
+
 def flattest_probe(T: np.ndarray, fractions: dict[int, float], score: Score, step_rad: float, step_m: float,
                    separation: Callable[[dict[int, float], dict[int, float]], tuple[float, float]]
                    ) -> tuple[float, int]:
@@ -60,8 +68,7 @@ def flattest_probe(T: np.ndarray, fractions: dict[int, float], score: Score, ste
     worst, which = math.inf, -1
     for k, P in enumerate(probe_poses(T, step_rad, step_m)):
         _, f = score(P)
-        d, se = separation(fractions, f)
-        z = d / se if se > 0 else (math.inf if d > 0 else (-math.inf if d < 0 else 0.0))
+        z = separation_z(*separation(fractions, f))
         if z < worst:
             worst, which = z, k
     return worst, which
