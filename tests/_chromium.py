@@ -1,6 +1,6 @@
 """Pages as a person sees them: headless Chromium at 1400 px, a screenshot, and what the page measures in the
 browser (its width, its links, its figures' captions, which tables or figures overflow, a click on a sortable
-table's header).
+table's header: the trial index where the page has one, else its first sortable table).
 
 Shared by the report tests (``tests/test_reports.py``) and the trial page tests (``tests/reports/``). Chromium is
 Debian's ``chromium`` (``scripts/system-deps.sh --browser``); without it the tests that need it are skipped.
@@ -41,7 +41,7 @@ window.addEventListener("load", function () {
   out.overflowing = Array.prototype.filter.call(document.querySelectorAll(".tablewrap, table, pre, figure"),
     function (e) { return e.scrollWidth > e.clientWidth + 1 || e.getBoundingClientRect().right > doc.clientWidth + 1; }
   ).map(function (e) { return e.tagName + "#" + (e.id || e.className || ""); });
-  var table = document.querySelector("table.sortable");
+  var table = document.querySelector("table#trial-index") || document.querySelector("table.sortable");
   if (table) {
     var heads = table.tHead.rows[0].cells, firsts = [];
     for (var k = 0; k < heads.length; k++) {
