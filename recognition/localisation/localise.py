@@ -85,9 +85,12 @@ class LocaliseParams:
         ``slide_stride``, about 1 ms each on VGA); the best starts the verification and ICP (which cannot
         converge from metres away). 0: no slide (a count of places).
     max_twins, max_twin_candidates : the poses the model's repeated structure makes look like the winner
-        (:mod:`.twins`: a twin of a matched feature where the winner puts that feature), at most
-        ``max_twin_candidates`` screened on a coarse prediction, the best ``max_twins`` refined by the quick ICP
-        and verified as alternatives. 0: none.
+        (:mod:`.twins`: a twin of a matched feature where the winner puts that feature) and the other
+        interpretations of the winner's patches, at most ``max_twin_candidates`` screened on a coarse prediction,
+        the best ``max_twins`` refined by the quick ICP and verified as alternatives. 0: none.
+    max_reinterpretations : the other interpretations of the patches the winner matched (the tree run again on
+        them alone, no wildcard), at most this many hypotheses; their fully constrained poses join the twins.
+        0: none.
     pin_angle_deg, pin_rel : the probes of the precision check (:mod:`.precision`): the final pose turned by
         this angle about each world axis through the sensor and moved by this fraction of the median measured
         range along each world axis - the evaluation's success tolerance, which an ok pose claims to meet.
@@ -130,7 +133,12 @@ class LocaliseParams:
         "trial, matching median 0.37 -> 0.22 s (740502b)")
 
     max_twins: int = tuned(2, unit="count", chosen="not tuned: a speed bound (each costs a quick ICP)")
-    max_twin_candidates: int = tuned(64, unit="count", chosen="not tuned: a speed bound on the coarse screening")
+    max_reinterpretations: int = tuned(
+        128, unit="count", chosen="not tuned: a speed bound on the search of the winner's patches alone (the corner "
+        "of calibration's factory-s2005-p10-v0-factory_scanner-n0, ok at 90 deg off, needs one)")
+    max_twin_candidates: int = tuned(
+        160, unit="count", chosen="not tuned: a speed bound on the coarse screening (64 before the reinterpretations "
+        "joined the twins)")
     pin_angle_deg: float = tuned(
         1.0, unit="deg", chosen="the evaluation's success tolerance (DESIGN 10.6): an ok pose claims to be within it")
     pin_rel: float = tuned(
@@ -142,9 +150,9 @@ class LocaliseParams:
         1.0, unit="separation (d / se)", chosen="not tuned: one standard error; checked on calibration with pin_z")
 
     def __post_init__(self):
-        if self.max_twins < 0 or self.max_twin_candidates < 0:
-            raise ValueError(f"max_twins and max_twin_candidates must be >= 0, got {self.max_twins}, "
-                             f"{self.max_twin_candidates}")
+        if self.max_twins < 0 or self.max_twin_candidates < 0 or self.max_reinterpretations < 0:
+            raise ValueError(f"max_twins, max_twin_candidates and max_reinterpretations must be >= 0, got "
+                             f"{self.max_twins}, {self.max_twin_candidates}, {self.max_reinterpretations}")
         if self.pin_angle_deg <= 0 or self.pin_rel <= 0:
             raise ValueError(f"pin_angle_deg and pin_rel must be > 0, got {self.pin_angle_deg}, {self.pin_rel}")
         if self.max_verify < 1:
@@ -272,11 +280,16 @@ def _explained(description: SceneDescription, matchable: frozenset[int], items, 
     return mask
 
 
-def _close(A: np.ndarray, B: np.ndarray, description: SceneDescription, angle_deg: float, rel: float) -> bool:
-    """Whether two poses are the same up to ``angle_deg`` and ``rel`` x the scene's median range."""
-    c = (np.trace(A[:3, :3].T @ B[:3, :3]) - 1.0) / 2.0
+def _pose_scale(description: SceneDescription) -> float:
+    """The scene's median range (m): the median distance of the patches' centroids from the sensor (1 without
+    patches), the length that ``same_pose_rel`` and ``pin_rel`` are fractions of in :func:`_close`."""
     rng = [float(np.linalg.norm(np.mean(p.points, axis=0))) for p in description.patches if len(p.points)]
-    scale = float(np.median(rng)) if rng else 1.0
+    return float(np.median(rng)) if rng else 1.0
+
+
+def _close(A: np.ndarray, B: np.ndarray, scale: float, angle_deg: float, rel: float) -> bool:
+    """Whether two poses are the same up to ``angle_deg`` and ``rel`` x ``scale`` (:func:`_pose_scale`)."""
+    c = (np.trace(A[:3, :3].T @ B[:3, :3]) - 1.0) / 2.0
     return bool(c > math.cos(math.radians(angle_deg)) and np.linalg.norm(A[:3, 3] - B[:3, 3]) < rel * scale)
 
 
@@ -360,22 +373,25 @@ PROBE_NAMES = tuple([f"turned {d} about {a}" for a in "xyz" for d in ("-", "+")]
 
 
 def _twin_outcomes(description, scan, model, model_simulator, el, best, T_best, best_agreement,
-                   screen_v: VerifyParams, params: LocaliseParams, timing: dict[str, float]) -> list[tuple]:
+                   screen_v: VerifyParams, params: LocaliseParams, timing: dict[str, float],
+                   others: list[np.ndarray] = ()) -> list[tuple]:
     """The poses the model's repeated structure makes look like ``T_best`` (:func:`.twins.twin_poses` of the
-    features ``best`` pairs), screened on a coarse prediction; the best ``max_twins`` of them (agreeing at least
-    ``icp_fraction`` of the winner) refined by the quick ICP and verified, as outcome tuples ``(agreement,
-    None, T_initial, T_refined, prediction, fractions)`` sorted best first. They can only be alternatives:
-    without a hypothesis of their own they have no pairs to stand on."""
+    features ``best`` pairs, then ``others``: the :func:`_reinterpretations`), screened on a coarse prediction;
+    the best ``max_twins`` of them (agreeing at least ``icp_fraction`` of the winner) refined by the quick ICP
+    and verified, as outcome tuples ``(agreement, None, T_initial, T_refined, prediction, fractions)`` sorted
+    best first. They can only be alternatives: without a hypothesis of their own they have no pairs to stand
+    on."""
     if params.max_twins == 0:
         return []
     t0 = time.perf_counter()
     matched = {str(el.feature_id[e]) for _, e in best.pairs if e >= 0}
     same = (params.match.same_pose_angle_deg, params.match.same_pose_rel)
+    scale = _pose_scale(description)
     kept: list[np.ndarray] = []
-    for T in twin_poses(T_best, matched, model):
+    for T in [*twin_poses(T_best, matched, model), *others]:
         if len(kept) >= params.max_twin_candidates:
             break
-        if not any(_close(T, K, description, *same) for K in [T_best, *kept]):
+        if not any(_close(T, K, scale, *same) for K in [T_best, *kept]):
             kept.append(T)
     screened = sorted(((agreement(description, scan, predict(model_simulator, scan.sensor, T, screen_v.stride),
                                   screen_v)[0], k, T) for k, T in enumerate(kept)), key=lambda x: (-x[0], x[1]))
@@ -389,6 +405,31 @@ def _twin_outcomes(description, scan, model, model_simulator, el, best, T_best, 
                                                  timing)
         out.append((after, None, T, T_f, pred_f, frac))
     return sorted(out, key=lambda x: -x[0])
+
+
+def _reinterpretations(description: SceneDescription, res, best, T_best: np.ndarray, el, pixel_pitch_rad: float,
+                       params: LocaliseParams, timing: dict[str, float]) -> list[np.ndarray]:
+    """The fully constrained poses of every other interpretation of the patches the winner ``best`` matched:
+    the interpretation tree run again on those patches alone, with no wildcard, at most
+    ``max_reinterpretations`` hypotheses (best tree score first), those not the same pose as ``T_best``.
+
+    The main search spends its hypothesis budget on the interpretations of all the patches, so in a bay whose
+    corners look alike (a floor and two walls seen away from their ends) the one that puts the sensor in the
+    right corner may never be made; on the winner's own patches the search is small and complete. Nothing
+    here prefers one corner to another: the verification does, or finds it cannot (``ambiguous``)."""
+    if params.max_reinterpretations == 0:
+        return []
+    t0 = time.perf_counter()
+    used = {res.items[i].patch_index for i, e in best.pairs if e >= 0}
+    sub = replace(description, patches=tuple(description.patches[k] for k in sorted(used)))
+    mp = replace(params.match, max_wildcard_fraction=0.0, extra_wildcards=0,
+                 max_hypotheses=params.max_reinterpretations)
+    found = match(sub, el, pixel_pitch_rad, mp)
+    same, scale = (params.match.same_pose_angle_deg, params.match.same_pose_rel), _pose_scale(description)
+    out = [h.pose.T_world_sensor for h in found.hypotheses
+           if h.pose.free_dof == 0 and not _close(h.pose.T_world_sensor, T_best, scale, *same)]
+    timing["matching"] += time.perf_counter() - t0
+    return out
 
 
 def _quick_refine(description, scan, model, model_simulator, pred: Prediction, mask: np.ndarray | None,
@@ -426,6 +467,29 @@ def _pinned(description: SceneDescription, scan: Scan, model_simulator, T: np.nd
     _, fractions = score(T)
     return flattest_probe(T, fractions, score, math.radians(params.pin_angle_deg), step_m,
                           lambda a, b: agreement_separation(description, a, b))
+
+
+def _start_alternative(description: SceneDescription, scan: Scan, model_simulator, T_start: np.ndarray,
+                       T_final: np.ndarray, params: LocaliseParams, timing: dict[str, float]
+                       ) -> PoseAlternative | None:
+    """The pose the winning hypothesis started from (its pairs' closed form, before ICP) as an alternative to
+    the final pose, when ICP carried the pose materially away from it: beyond the success tolerance an ok pose
+    claims (``pin_angle_deg``, ``pin_rel``), so that the two cannot both be right; None otherwise.
+
+    ICP follows the model surfaces nearest the points, and a change can hold them (a new object beside a model
+    surface, a pipe of another radius): it can then leave the pose the pairs gave for one a few degrees off
+    that the agreement, counting the changed parts too, prefers by a little. Only the data can say whether the
+    move was for the better, so the final pose must be separated from its start like from any other
+    alternative (``separation_z``). Both are scored on the verification's grid (``params.verify``)."""
+    if _close(T_start, T_final, _pose_scale(description), params.pin_angle_deg, params.pin_rel):
+        return None
+    t0 = time.perf_counter()
+    scored = [agreement(description, scan, predict(model_simulator, scan.sensor, T, params.verify.stride),
+                        params.verify) for T in (T_final, T_start)]
+    timing["verification"] += time.perf_counter() - t0
+    (_, f_final), (a_start, f_start) = scored
+    return PoseAlternative(T_start, float(a_start),
+                           separation_z(*agreement_separation(description, f_final, f_start)))
 
 
 def _confidence(z: float) -> float:
@@ -549,11 +613,13 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
         outcomes.append((after, h, T_i, T_f, pred_f, frac))
     outcomes.sort(key=lambda x: (-x[0], x[1].pose.free_dof))
     after0, best, T_init, T_quick, pred_quick, frac0 = outcomes[0]
+    others = _reinterpretations(description, res, best, T_quick, el, scan.sensor.pixel_pitch_rad, params, timing)
     twins = _twin_outcomes(description, scan, model, model_simulator, el, best, T_quick, after0, screen_v, params,
-                           timing)
+                           timing, others)
     alternatives: list[PoseAlternative] = []
+    scale = _pose_scale(description)
     for other in [*outcomes[1:], *twins]:
-        if any(_close(other[3], T, description, params.match.same_pose_angle_deg, params.match.same_pose_rel)
+        if any(_close(other[3], T, scale, params.match.same_pose_angle_deg, params.match.same_pose_rel)
                for T in [T_quick] + [a.T_world_sensor for a in alternatives]):
             continue
         alternatives.append(PoseAlternative(other[3], float(other[0]),
@@ -578,6 +644,11 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
             free = free if id(best) in slid else min(free, ir.free_dof)
         else:
             icp_note = f"; ICP not applied: {ir.reason}"
+    start = _start_alternative(description, scan, model_simulator, T_init, T_final, params, timing)
+    if start is not None and not any(_close(start.T_world_sensor, a.T_world_sensor, scale,
+                                            params.match.same_pose_angle_deg, params.match.same_pose_rel)
+                                     for a in alternatives):
+        alternatives.append(start)
     pairs = {patch_ids[i]: (str(el.feature_id[e]) if e >= 0 else None) for i, e in best.pairs}
     # prediction at the final pose (shared with change detection) and the final confidence
     t0 = time.perf_counter()

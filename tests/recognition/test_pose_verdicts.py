@@ -138,3 +138,29 @@ def test_twin_poses_put_a_twin_where_the_pose_put_the_feature():
     p_c = np.linalg.inv(T) @ np.r_[pipe.centre, 1.0]
     assert np.allclose((flip @ p_c)[:3], pipe.centre) and rotation_error_deg(flip[:3, :3], T[:3, :3]) == \
         pytest.approx(180.0)
+
+
+
+def test_the_pose_icp_started_from_is_an_alternative_once_icp_carried_it_beyond_the_tolerance(monkeypatch):
+    """ICP that leaves its hypothesis' closed-form pose by more than the success tolerance makes that pose an
+    alternative the data must separate the final one from (``_start_alternative``); within it, nothing."""
+    import importlib
+
+    loc = importlib.import_module("recognition.localisation.localise")
+    desc = SimpleNamespace(patches=tuple(SimpleNamespace(id=i, n_pixels=400, points=np.array([[0.0, 0.0, 2.0]]))
+                                         for i in range(3)))
+    fractions = {0: {0: 0.9, 1: 0.8, 2: 0.7}, 1: {0: 0.5, 1: 0.8, 2: 0.6}}  # final, start
+    monkeypatch.setattr(loc, "predict", lambda sim, sensor, T, stride: SimpleNamespace(T=T))
+    monkeypatch.setattr(loc, "agreement",
+                        lambda d, s, pred, v: (0.7 - 0.2 * pred.T[0, 3], fractions[int(pred.T[0, 3])]))
+    scan = SimpleNamespace(sensor=None)
+    params, timing = LocaliseParams(), {"verification": 0.0}
+    final, start = np.eye(4), np.eye(4)
+    start[0, 3] = 1.0  # 1 m away: beyond 1 % of the 2 m range
+    alt = loc._start_alternative(desc, scan, None, start, final, params, timing)
+    d, se = agreement_separation(desc, fractions[0], fractions[1])
+    assert np.array_equal(alt.T_world_sensor, start) and alt.agreement == pytest.approx(0.5)
+    assert alt.separation == pytest.approx(d / se)
+    near = np.eye(4)
+    near[0, 3] = 0.01  # 10 mm: within 1 % of 2 m
+    assert loc._start_alternative(desc, scan, None, near, final, params, timing) is None
