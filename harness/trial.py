@@ -118,6 +118,7 @@ def _prepare(spec: TrialSpec, cache_dir: Path | None) -> PreparedScene:
                                                               new_count=(0, 0)), spec.perturbation_seed)
         else:
             actual, truth = perturb(apriori, PerturbationSpec.load(spec.perturbation_file), spec.perturbation_seed)
+        actual = actual.rounded()  # the same scene on every machine (SceneModel.rounded)
         if actual_path is not None:
             from harness.store import write_text_atomic
 

@@ -59,6 +59,12 @@ CONSTANTS = (
      "a measurement (describe()'s peak working memory per pixel at 1000² and 2000², with margin), for the error "
      "that max_pixels raises"),
     ("recognition.peers.registration", "_MODEL_CACHE_SIZE", "models", "a cache size: no result depends on it"),
+    ("recognition.segmentation.quick_fits", "UNDETERMINED_QUADRIC", "eigenvalue / trace",
+     "numerical: a null space of two or more quadrics (a one-pixel strip lies exactly on a plane through the "
+     "sensor: eigenvalues ~1e-17 against ~1e-8 and up for the noisiest real groups of 10-16 points)"),
+    ("recognition.localisation.pose", "COST_TIE_REL", "fraction",
+     "numerical: costs that agree to this are the same fit up to rounding (the floating-point paths differ by "
+     "~1e-12 of the cost), ordered by a tie rule"),
 )
 
 

@@ -70,6 +70,7 @@ def family_config_path(family: str, config: str | Path | None = None) -> Path:
 
 
 def family_member(family: str, seed: int, config: str | Path | None = None) -> SceneModel:
-    """The a priori model of member ``seed`` of ``family`` (see the module docstring)."""
+    """The a priori model of member ``seed`` of ``family`` (see the module docstring), its numbers rounded to 10
+    decimals (:meth:`SceneModel.rounded`: the same scene on every machine)."""
     path = family_config_path(family, config)
-    return FAMILIES[family].make(path, seed, member_name(family, seed))
+    return FAMILIES[family].make(path, seed, member_name(family, seed)).rounded()

@@ -86,6 +86,23 @@ class SceneModel:
     def replace_objects(self, objects: Iterable[Object]) -> SceneModel:
         return SceneModel(self.name, tuple(objects))
 
+    def rounded(self, decimals: int = 10) -> SceneModel:
+        """This model with every number rounded to ``decimals`` places (0.1 nm for the default 10; -0.0 as 0.0).
+
+        A generator's or a perturbation's last bits follow the floating-point path (numpy's SIMD width: a pipe
+        0.637873032448587 m long on one machine, 0.6378730324485871 m on another; a cross product's zero as
+        1e-17); rounded, a scene is the same scene on every machine (``python -m harness.bench.stability``)."""
+        def r(value: Any) -> Any:
+            if isinstance(value, float):
+                return round(value, decimals) + 0.0
+            if isinstance(value, dict):
+                return {k: r(v) for k, v in value.items()}
+            if isinstance(value, (list, tuple)):
+                return [r(v) for v in value]
+            return value
+
+        return SceneModel.from_dict(r(self.to_dict()), self.name)
+
     # -- YAML -----------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         return {"schema": SCHEMA, "name": self.name,

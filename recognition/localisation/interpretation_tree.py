@@ -54,7 +54,7 @@ from .matching import (
     scene_items,
     unary_candidates,
 )
-from .pose import PoseEstimate, estimate_pose, pose_hypotheses
+from .pose import PoseEstimate, estimate_pose, pose_hypotheses, sorted_with_ties
 
 __all__ = ["Hypothesis", "MatchResult", "match", "given_match"]
 
@@ -372,7 +372,8 @@ class _Search:
     def finish(self, max_hypotheses: int) -> list[Hypothesis]:
         """The best leaves refined with all their pairs (a second completion under the refined pose); when no
         seed fixed 6 DOF, the largest partial assignments as underconstrained hypotheses."""
-        leaves = _diverse(sorted(self.leaves, key=lambda h: (-h.score, h.pose.cost)), self.order,
+        leaves = _diverse(sorted_with_ties(self.leaves, first=lambda h: -h.score, cost=lambda h: h.pose.cost,
+                                           tiebreak=_tiebreak), self.order,
                           2 * max_hypotheses)
         out: list[Hypothesis] = []
         for h in leaves:
@@ -409,6 +410,13 @@ class _Search:
                     out.append(Hypothesis(tuple(sorted(full)), h,
                                           float(sum(self.items[i].weight for i, _ in pairs)), len(pairs)))
         return out
+
+
+def _tiebreak(h: Hypothesis) -> tuple:
+    """The order of hypotheses that fit equally well (:func:`.pose.sorted_with_ties`): by pairs, signs, then the
+    pose itself (to a micrometre and a microradian: the same pairs and signs can settle in mirror poses)."""
+    T = h.pose.T_world_sensor
+    return h.pairs, h.pose.signs, () if T is None else tuple(np.round(T[:3], 6).ravel().tolist())
 
 
 def _diverse(ranked: list[Hypothesis], order: list[int], n: int) -> list[Hypothesis]:
@@ -473,7 +481,8 @@ def match(description: SceneDescription, model: SceneModel | ModelElements, pixe
     length_m = _length_m(params, items)
     s = _Search(items, el, cands, params, length_m)
     s.run()
-    leaves = sorted(s.finish(params.max_hypotheses), key=lambda h: (-h.score, h.pose.free_dof, h.pose.cost))
+    leaves = sorted_with_ties(s.finish(params.max_hypotheses), first=lambda h: (-h.score, h.pose.free_dof),
+                              cost=lambda h: h.pose.cost, tiebreak=_tiebreak)
     uniq: list[Hypothesis] = []
     for h in leaves:
         T = h.pose.T_world_sensor
@@ -481,8 +490,8 @@ def match(description: SceneDescription, model: SceneModel | ModelElements, pixe
                           params.same_pose_rel * length_m) for u in uniq):
             continue
         uniq.append(h)
-    uniq = sorted(_diverse(uniq, s.order, params.max_hypotheses),
-                  key=lambda h: (-h.score, h.pose.free_dof, h.pose.cost))
+    uniq = sorted_with_ties(_diverse(uniq, s.order, params.max_hypotheses), first=lambda h: (-h.score, h.pose.free_dof),
+                            cost=lambda h: h.pose.cost, tiebreak=_tiebreak)
     return MatchResult(tuple(uniq), tuple(items), el, s.n_nodes, not s.stop_reason,
                        tuple(len(c) for c in cands), s.stop_reason, matchable)
 

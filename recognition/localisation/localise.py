@@ -97,6 +97,8 @@ class LocaliseParams:
     pin_z : an ok pose must be separated from every probe by at least this (``d / se`` of
         :func:`agreement_separation`): otherwise the data do not fix it within the tolerance (``not pinned``).
     separation_z : ... and from every materially different alternative by at least this (``ambiguous``).
+    separation_leave_out : the separation from an alternative leaves out this many patches that favour the
+        winner most (:func:`agreement_separation`): a preference one patch carries may be a change.
 
     Every field's unit and where its value was chosen: :func:`recognition.tuning.tuned` (``docs/tuning.md``).
     """
@@ -148,6 +150,8 @@ class LocaliseParams:
         "collection of 93 trials at 9dc872f's parent): ok-but-wrong poses 6 -> 2 with separation_z")
     separation_z: float = tuned(
         1.0, unit="separation (d / se)", chosen="not tuned: one standard error; checked on calibration with pin_z")
+    separation_leave_out: int = tuned(
+        1, unit="patches", chosen="not tuned: one patch, so that one changed object cannot carry the verdict alone")
 
     def __post_init__(self):
         if self.max_twins < 0 or self.max_twin_candidates < 0 or self.max_reinterpretations < 0:
@@ -155,6 +159,8 @@ class LocaliseParams:
                              f"{self.max_twins}, {self.max_twin_candidates}, {self.max_reinterpretations}")
         if self.pin_angle_deg <= 0 or self.pin_rel <= 0:
             raise ValueError(f"pin_angle_deg and pin_rel must be > 0, got {self.pin_angle_deg}, {self.pin_rel}")
+        if self.separation_leave_out < 0:
+            raise ValueError(f"separation_leave_out must be >= 0, got {self.separation_leave_out}")
         if self.max_verify < 1:
             raise ValueError(f"max_verify must be >= 1, got {self.max_verify}")
         if not 0 <= self.min_confidence <= 1:
@@ -294,9 +300,9 @@ def _close(A: np.ndarray, B: np.ndarray, scale: float, angle_deg: float, rel: fl
 
 
 def agreement_separation(description: SceneDescription, fractions_a: dict[int, float],
-                         fractions_b: dict[int, float]) -> tuple[float, float]:
+                         fractions_b: dict[int, float], leave_out: int = 0) -> tuple[float, float]:
     """How far the data prefer pose A to pose B: ``(d, se)``, the difference of their agreements over the
-    patches both score and its standard error.
+    patches both score and its standard error, after leaving out the ``leave_out`` patches that favour A most.
 
     ``d`` is the ``log(pixels)``-weighted mean of the per-patch differences ``f_A - f_B`` (the weights of
     :func:`recognition.localisation.agreement`); the patches are the independent units (neighbouring pixels of
@@ -308,9 +314,16 @@ def agreement_separation(description: SceneDescription, fractions_a: dict[int, f
     ----------
     description : the scene description (patch sizes).
     fractions_a, fractions_b : ``{patch id: fraction of agreeing pixels}`` of the two poses.
+    leave_out : how many of the patches with the largest ``f_A - f_B`` are left out (ties: the larger, then the
+        lower patch id first); leaving out such a patch never raises ``d``. A preference that one patch carries
+        may be a change, not the pose: an altered pipe that the wrong pose fits, a moved cabinet where the wrong
+        pose puts its twin.
     """
     size = {p.id: p.n_pixels for p in description.patches}
     common = sorted(set(fractions_a) & set(fractions_b))
+    if leave_out > 0 and common:
+        favour = sorted(common, key=lambda k: (-(fractions_a[k] - fractions_b[k]), -size[k], k))
+        common = sorted(favour[leave_out:])
     if len(common) < 2:
         return 0.0, math.inf
     w = np.array([math.log(size[k]) for k in common])
@@ -490,8 +503,8 @@ def _start_alternative(description: SceneDescription, scan: Scan, model_simulato
                         params.verify) for T in (T_final, T_start)]
     timing["verification"] += time.perf_counter() - t0
     (_, f_final), (a_start, f_start) = scored
-    return PoseAlternative(T_start, float(a_start),
-                           separation_z(*agreement_separation(description, f_final, f_start)))
+    return PoseAlternative(T_start, float(a_start), separation_z(
+        *agreement_separation(description, f_final, f_start, params.separation_leave_out)))
 
 
 def _confidence(z: float) -> float:
@@ -624,8 +637,9 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
         if any(_close(other[3], T, scale, params.match.same_pose_angle_deg, params.match.same_pose_rel)
                for T in [T_quick] + [a.T_world_sensor for a in alternatives]):
             continue
-        alternatives.append(PoseAlternative(other[3], float(other[0]),
-                                            separation_z(*agreement_separation(description, frac0, other[5]))))
+        alternatives.append(PoseAlternative(
+            other[3], float(other[0]),
+            separation_z(*agreement_separation(description, frac0, other[5], params.separation_leave_out))))
     ambiguous = ""
     for alt in alternatives:
         if alt.agreement >= after0 - params.ambiguity_margin:

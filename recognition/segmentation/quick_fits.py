@@ -27,6 +27,34 @@ from .derivatives import norm3
 from .grid import _is_planar_counts, _rms, _State, _subsample
 from .types import SegmentationParams
 
+#: below this, the second-smallest eigenvalue of a group's normalised monomial moments (``M / trace M``) says
+#: that two or more quadrics fit its points exactly: the points determine no quadric
+UNDETERMINED_QUADRIC = 1e-12
+
+
+def _normalised(x: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """Points (N, 3) centred and scaled to unit RMS radius: ``(y, scale, mean)``."""
+    mean = x.mean(axis=0)
+    scale = float(np.sqrt(np.mean(np.sum((x - mean) ** 2, axis=1)))) or 1.0
+    return (x - mean) / scale, scale, mean
+
+
+def quadric_undetermined(x: np.ndarray) -> bool:
+    """Whether the points ``x`` (N, 3) determine no quadric: fewer than 10, or two or more independent quadrics
+    fit them exactly (:data:`UNDETERMINED_QUADRIC`).
+
+    A strip of pixels one row or one column wide lies exactly on the plane through the sensor that holds its
+    rays, and every quadric containing that plane fits it; the fit's eigenvector is then any vector of that null
+    space, chosen by the rounding of the floating-point path (numpy's SIMD width, the BLAS kernel): labels that
+    changed with the machine (``python -m harness.bench.stability``). Such a group is fitted with a plane.
+    """
+    if len(x) < 10:
+        return True
+    D = monomials(_normalised(x)[0])
+    M = D.T @ D
+    tr = float(np.trace(M))
+    return bool(tr <= 0 or np.linalg.eigvalsh(M / tr)[1] < UNDETERMINED_QUADRIC)
+
 
 def _quick_fit(x: np.ndarray, u: np.ndarray, s: np.ndarray, planar: bool,
                want_params: bool = True) -> tuple[np.ndarray | None, np.ndarray]:
@@ -34,8 +62,9 @@ def _quick_fit(x: np.ndarray, u: np.ndarray, s: np.ndarray, planar: bool,
 
     ``x`` points (N, 3), ``u`` their unit rays, ``s`` their sigmas. The residual of each point is the range
     change putting it on the surface to first order, in sigma units (the incidence cosine floored at 0.25).
+    Points that determine no quadric (:func:`quadric_undetermined`, fewer than 10 among them) get the plane.
     """
-    if planar or len(x) < 10:
+    if planar or quadric_undetermined(x):
         if len(x) < 3:
             return (np.full(10, np.nan) if want_params else None), np.full(len(x), np.inf)
         c = x.mean(axis=0)
@@ -47,9 +76,7 @@ def _quick_fit(x: np.ndarray, u: np.ndarray, s: np.ndarray, planar: bool,
         p = plane_params(n, float(n @ c)) if want_params else None
         scale = 1.0
     else:
-        mean = x.mean(axis=0)
-        scale = float(np.sqrt(np.mean(np.sum((x - mean) ** 2, axis=1)))) or 1.0
-        y = (x - mean) / scale
+        y, scale, mean = _normalised(x)
         D = monomials(y)
         pn, _ = taubin_fit(D, y, np.ones(len(y)))
         if pn is None:
@@ -118,7 +145,8 @@ _TAUBIN_MAP = np.einsum("kmi,knj->mnij", MONOMIAL_GRADIENT, MONOMIAL_GRADIENT)[:
 
 def _quadric_fits(X, U, S, gid, starts, cnt):
     """Taubin quadrics of the groups (unit-norm algebraic fit where Taubin's is undefined), in normalised
-    coordinates per group: parameters (G, 10) in metres and per-point ray z-residuals (N,).
+    coordinates per group: parameters (G, 10) in metres and per-point ray z-residuals (N,). The groups whose
+    points determine no quadric (:func:`quadric_undetermined`) get their planes (:func:`_plane_fits`).
 
     Per-point quantities are laid out by rows (one contiguous row per monomial or coordinate): the products
     below then run on contiguous memory.
@@ -135,8 +163,9 @@ def _quadric_fits(X, U, S, gid, starts, cnt):
     N9 = (S4.reshape(G, 16) @ _TAUBIN_MAP).reshape(G, 9, 9)
     tr = np.trace(M, axis1=1, axis2=2)
     ev = np.linalg.eigvalsh(M / np.where(tr > 0, tr, 1.0)[:, None, None])
+    undetermined = (tr <= 0) | (ev[:, 1] < UNDETERMINED_QUADRIC)
     evn = np.linalg.eigvalsh(N9)
-    ok = (ev[:, 1] >= 1e-12) & (evn[:, 0] > 1e-12 * np.maximum(evn[:, -1], 1e-300)) & (M[:, 9, 9] > 0)
+    ok = ~undetermined & (evn[:, 0] > 1e-12 * np.maximum(evn[:, -1], 1e-300)) & (M[:, 9, 9] > 0)
     N9 = np.where(ok[:, None, None], N9, np.eye(9))
     m99 = np.where(ok, M[:, 9, 9], 1.0)
     Sg = M[:, :9, :9] - M[:, :9, 9:10] @ M[:, 9:10, :9] / m99[:, None, None]
@@ -163,6 +192,12 @@ def _quadric_fits(X, U, S, gid, starts, cnt):
     P[:, 6:9] = pn[:, 6:9] / scale[:, None] - 2.0 * Am * is2[:, None]
     P[:, 9] = np.einsum("gi,gi->g", mean, Am) * is2 - np.einsum("gi,gi->g", pn[:, 6:9], mean) / scale + pn[:, 9]
     P /= np.linalg.norm(P, axis=1, keepdims=True)
+    if undetermined.any():
+        sel = np.flatnonzero(undetermined)
+        rows = undetermined[gid]  # the groups' rows are contiguous and in order
+        sub = cnt[sel]
+        P[sel], z[rows] = _plane_fits(X[rows], U[rows], S[rows], np.repeat(np.arange(sel.size), sub),
+                                      np.concatenate([[0], np.cumsum(sub)[:-1]]), sub)
     return P, z
 
 

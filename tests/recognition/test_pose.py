@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from evaluation.pose import add_mm, pose_section, rotation_error_deg, translation_error_mm
@@ -203,3 +205,18 @@ def test_many_unsigned_axes_do_not_blow_up():
     assert time.process_time() - t0 < 2.0
     assert est.ok and est.free_dof == 0
     assert rotation_error_deg(est.T_world_sensor[:3, :3], T[:3, :3]) < 1e-3
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 3), st.integers(0, 5)), min_size=1, max_size=12), st.randoms())
+def test_equal_fits_are_ordered_by_the_tie_rule_whatever_the_rounding(items, rnd):
+    """Costs that agree up to rounding (here 1e-12 of the cost, as two floating-point paths give) are ordered by
+    the tie-break, so a permuted, re-rounded input gives the same order."""
+    from recognition.localisation.pose import sorted_with_ties
+
+    costs = [0.5 + 0.25 * c for c, _ in items]
+    base = [(c, k, i) for i, (c, (_, k)) in enumerate(zip(costs, items, strict=True))]
+    jitter = [(c * (1 + rnd.uniform(-1e-12, 1e-12)), k, i) for c, k, i in base]
+    rnd.shuffle(jitter)
+    key = dict(cost=lambda x: x[0], tiebreak=lambda x: (x[1], x[2]))
+    assert [x[2] for x in sorted_with_ties(base, **key)] == [x[2] for x in sorted_with_ties(jitter, **key)]

@@ -159,9 +159,37 @@ def test_the_pose_icp_started_from_is_an_alternative_once_icp_carried_it_beyond_
     final, start = np.eye(4), np.eye(4)
     start[0, 3] = 1.0  # 1 m away: beyond 1 % of the 2 m range
     alt = loc._start_alternative(desc, scan, None, start, final, params, timing)
-    d, se = agreement_separation(desc, fractions[0], fractions[1])
+    d, se = agreement_separation(desc, fractions[0], fractions[1], params.separation_leave_out)
     assert np.array_equal(alt.T_world_sensor, start) and alt.agreement == pytest.approx(0.5)
     assert alt.separation == pytest.approx(d / se)
     near = np.eye(4)
     near[0, 3] = 0.03  # 30 mm: within twice 1 % of 2 m
     assert loc._start_alternative(desc, scan, None, near, final, params, timing) is None
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(0, 1), min_size=3, max_size=8), st.lists(st.floats(0, 1), min_size=3, max_size=8),
+       st.integers(0, 2))
+def test_leaving_out_the_patches_that_favour_a_most_is_the_separation_without_them(fa, fb, leave_out):
+    n = min(len(fa), len(fb))
+    desc = _desc([50 + 37 * i for i in range(n)])
+    a, b = dict(enumerate(fa[:n])), dict(enumerate(fb[:n]))
+    w = {k: 50 + 37 * k for k in range(n)}  # sizes: ties go to the larger patch
+    ranked = sorted(range(n), key=lambda k: (-(a[k] - b[k]), -w[k], k))
+    kept = set(ranked[leave_out:])
+    expected = agreement_separation(desc, {k: a[k] for k in kept}, {k: b[k] for k in kept})
+    assert agreement_separation(desc, a, b, leave_out) == pytest.approx(expected)
+    # leaving a patch out never makes A look better (with two patches left to measure the spread)
+    if n - leave_out >= 2:
+        assert agreement_separation(desc, a, b, leave_out)[0] <= agreement_separation(desc, a, b)[0] + 1e-12
+
+
+def test_one_patch_cannot_carry_the_preference_alone():
+    """The default suite's mock-up trial whose altered pipe the wrong pose fits (0.70 of its pixels against 0.00,
+    every other patch the same): by one standard error without leaving it out, a tie with it left out."""
+    desc = _desc([261423, 25026, 10737, 2799, 1011, 729, 343, 290])
+    final = {0: 1.0, 1: 0.70, 2: 1.0, 3: 0.05, 4: 0.0, 5: 1.0, 6: 0.25, 7: 1.0}
+    start = {**final, 1: 0.0}
+    d, se = agreement_separation(desc, final, start)
+    assert d > 0 and 0.9 < d / se < 1.1
+    assert agreement_separation(desc, final, start, 1) == (0.0, 0.0)

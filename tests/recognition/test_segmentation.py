@@ -1059,3 +1059,29 @@ def test_peeling_keeps_every_interior_row_of_a_diagonal_strip(width, shift, rows
     out = _peel_weak(labels, SegmentationParams(min_region_pixels=200), np.zeros((rows, W - 1), bool),
                      np.zeros((rows - 1, W), bool))
     assert (out[1:-1][labels[1:-1] == 0] == 0).all()
+
+
+def test_a_one_pixel_strip_determines_no_quadric_and_gets_its_plane():
+    """A row of pixels lies exactly on the plane through the sensor that holds its rays: every quadric holding
+    that plane fits it, and the fit would be whichever null vector the rounding picks (labels that changed with
+    the machine). It gets the plane, alone and batched; a patch of two rows gets its quadric."""
+    from types import SimpleNamespace
+
+    from recognition.segmentation.quick_fits import _quick_fit, _quick_fits, quadric_undetermined
+
+    rng = np.random.default_rng(4)
+    cols = np.arange(14)
+    rays = np.stack([np.tan(0.01 * (cols - 7)), np.full(14, np.tan(0.05)), np.ones(14)], axis=1)
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    rng_m = 2.0 + 0.1 * np.sin(cols / 3.0) + rng.normal(0, 1e-3, 14)  # a curved surface seen along one row
+    strip = rays * rng_m[:, None]
+    assert quadric_undetermined(strip)
+    two_rows = np.concatenate([strip, (rays + [0, 0.01, 0]) * (rng_m[:, None] + 0.02)])
+    assert not quadric_undetermined(two_rows)
+    p_one, z_one = _quick_fit(strip, rays, np.full(14, 1e-3), planar=False)
+    p_plane, z_plane = _quick_fit(strip, rays, np.full(14, 1e-3), planar=True)
+    assert np.allclose(p_one, p_plane) and np.allclose(z_one, z_plane)
+    st = SimpleNamespace(X=strip, U=rays, S=np.full(14, 1e-3))
+    P, zs = _quick_fits([np.arange(14)], np.array([False]), st)
+    assert np.allclose(P[0], p_plane, atol=1e-12) or np.allclose(P[0], -p_plane, atol=1e-12)
+    assert np.allclose(zs[0], z_plane)
