@@ -419,6 +419,12 @@ def _tiebreak(h: Hypothesis) -> tuple:
     return h.pairs, h.pose.signs, () if T is None else tuple(np.round(T[:3], 6).ravel().tolist())
 
 
+def _ranked(hypotheses: list[Hypothesis]) -> list[Hypothesis]:
+    """Best score first, then fewer free DOF, then lower pose cost (ties up to rounding by :func:`_tiebreak`)."""
+    return sorted_with_ties(hypotheses, first=lambda h: (-h.score, h.pose.free_dof), cost=lambda h: h.pose.cost,
+                            tiebreak=_tiebreak)
+
+
 def _diverse(ranked: list[Hypothesis], order: list[int], n: int) -> list[Hypothesis]:
     """At most ``n`` of the ``ranked`` hypotheses: the best half by score, then the best one that matches each
     item (items in search ``order``: fewest candidates first), then the rest by score.
@@ -481,8 +487,7 @@ def match(description: SceneDescription, model: SceneModel | ModelElements, pixe
     length_m = _length_m(params, items)
     s = _Search(items, el, cands, params, length_m)
     s.run()
-    leaves = sorted_with_ties(s.finish(params.max_hypotheses), first=lambda h: (-h.score, h.pose.free_dof),
-                              cost=lambda h: h.pose.cost, tiebreak=_tiebreak)
+    leaves = _ranked(s.finish(params.max_hypotheses))
     uniq: list[Hypothesis] = []
     for h in leaves:
         T = h.pose.T_world_sensor
@@ -490,8 +495,7 @@ def match(description: SceneDescription, model: SceneModel | ModelElements, pixe
                           params.same_pose_rel * length_m) for u in uniq):
             continue
         uniq.append(h)
-    uniq = sorted_with_ties(_diverse(uniq, s.order, params.max_hypotheses), first=lambda h: (-h.score, h.pose.free_dof),
-                            cost=lambda h: h.pose.cost, tiebreak=_tiebreak)
+    uniq = _ranked(_diverse(uniq, s.order, params.max_hypotheses))
     return MatchResult(tuple(uniq), tuple(items), el, s.n_nodes, not s.stop_reason,
                        tuple(len(c) for c in cands), s.stop_reason, matchable)
 
