@@ -84,6 +84,9 @@ class IcpResult:
     cov_T_world_sensor : ndarray of shape (6, 6) or None.
     fitness : inlier fraction of the source; rmse_m : inlier RMS point-to-plane residual (metres).
     n_correspondences : int; free_dof : directions the correspondences leave unconstrained.
+    free_dof_without_one : the most directions left unconstrained when the correspondences of one movable model
+        object (any kind but :data:`STABLE_KINDS`) are left out; ``resting_on`` that object's id ("" when none
+        leaves a direction free).
     """
 
     ok: bool
@@ -94,6 +97,8 @@ class IcpResult:
     rmse_m: float
     n_correspondences: int
     free_dof: int
+    free_dof_without_one: int = 0
+    resting_on: str = ""
 
 
 def model_normals(model: SceneModel, feature_ids: np.ndarray, parts: np.ndarray, points: np.ndarray
@@ -125,6 +130,11 @@ def model_normals(model: SceneModel, feature_ids: np.ndarray, parts: np.ndarray,
             g[pt == "cap_end"] = f.axis
         out[sel] = g
     return out
+
+
+#: object kinds a pose may rest on alone: the building's shell (a partially correct model's equipment may have
+#: moved, its walls and floor are where the model has them)
+STABLE_KINDS = ("floor", "wall")
 
 
 def _info(src_w: np.ndarray, tgt: np.ndarray, nrm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -167,6 +177,9 @@ def icp_refine(scan: Scan, prediction: Prediction, model: SceneModel, T_init: np
     nrm = model_normals(model, fids, parts, tgt)
     good = np.all(np.isfinite(nrm), axis=1)
     tgt, nrm = tgt[good], nrm[good]
+    movable = {f: model.object_of(f) for f in set(fids.tolist())}
+    movable = {f: o for f, o in movable.items() if model.object(o).kind not in STABLE_KINDS}
+    objects = np.array([movable.get(f, "") for f in fids[good].tolist()], dtype=object)
     # source: scan points on a stride
     s = params.source_stride
     src = scan.points[::s, ::s].reshape(-1, 3)
@@ -208,8 +221,15 @@ def icp_refine(scan: Scan, prediction: Prediction, model: SceneModel, T_init: np
     from .pose import free_dof_of
 
     free, _ = free_dof_of(Ji, med_range, 0.1)
+    free_without, resting_on = 0, ""
+    objs = objects[corr[:, 1]][inl]
+    for o in sorted(set(objs.tolist()) - {""}):  # each movable object left out in turn
+        k, _ = free_dof_of(Ji[objs != o], med_range, 0.1)
+        if k > free_without:
+            free_without, resting_on = k, o
     cov = np.linalg.pinv(info, rcond=1e-12, hermitian=True)
-    return IcpResult(True, "", T, cov, float(res.fitness), float(np.sqrt(np.mean(r[inl] ** 2))), len(corr), free)
+    return IcpResult(True, "", T, cov, float(res.fitness), float(np.sqrt(np.mean(r[inl] ** 2))), len(corr), free,
+                     free_without, resting_on)
 
 
 def _icp_passes(o3d, source, target, raw: list[float], floor: float, T: np.ndarray, params: IcpParams):

@@ -99,6 +99,11 @@ class LocaliseParams:
     separation_z : ... and from every materially different alternative by at least this (``ambiguous``).
     separation_leave_out : the separation from an alternative leaves out this many patches that favour the
         winner most (:func:`agreement_separation`): a preference one patch carries may be a change.
+    max_free_without_one : an ok pose leaves at most this many DOF free when the ICP's correspondences on any one
+        movable model object (kinds other than :data:`.icp.STABLE_KINDS`) are left out: in a partially correct
+        model any one of them may have moved, and a pose that rests on it alone is as wrong as it. A move is
+        seen against the rest of the view in the directions the rest fixes, and goes unseen in the others: with
+        most of the pose resting on one object, nothing would show it had moved. 6: no such check.
 
     Every field's unit and where its value was chosen: :func:`recognition.tuning.tuned` (``docs/tuning.md``).
     """
@@ -154,6 +159,10 @@ class LocaliseParams:
         1, unit="patches", chosen="not tuned: one patch, so that one changed object cannot carry the verdict alone; "
         "checked on calibration with the tie rule (c8864fb, same draws): ok-but-wrong poses 4 -> 3, constrained pose "
         "success 0.892 -> 0.919")
+    max_free_without_one: int = tuned(
+        3, unit="DOF", chosen="calibration at 445e44a: the ok-but-wrong poses that rested on one object left 6, 6 "
+        "and 1 DOF free without it, the right ones 1-3 (0: all 12 Kinect-like ok poses lost, 9 of them right); "
+        "3: the rest of the view fixes at least half of the pose")
 
     def __post_init__(self):
         if self.max_twins < 0 or self.max_twin_candidates < 0 or self.max_reinterpretations < 0:
@@ -161,6 +170,8 @@ class LocaliseParams:
                              f"{self.max_twins}, {self.max_twin_candidates}, {self.max_reinterpretations}")
         if self.pin_angle_deg <= 0 or self.pin_rel <= 0:
             raise ValueError(f"pin_angle_deg and pin_rel must be > 0, got {self.pin_angle_deg}, {self.pin_rel}")
+        if not 0 <= self.max_free_without_one <= 6:
+            raise ValueError(f"max_free_without_one must be in 0..6, got {self.max_free_without_one}")
         if self.separation_leave_out < 0:
             raise ValueError(f"separation_leave_out must be >= 0, got {self.separation_leave_out}")
         if self.max_verify < 1:
@@ -653,7 +664,7 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
             break
     # the winner's full ICP, against the model predicted visible from its quickly refined pose
     T_final, cov, free = T_quick, best.pose.cov_T_world_sensor, best.pose.free_dof
-    icp_note = ""
+    icp_note, rests_on = "", ""
     if params.use_icp:
         t0 = time.perf_counter()
         ir = icp_refine(scan, pred_quick, model, T_quick, params.icp,
@@ -664,6 +675,9 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
             # a slid pose keeps its pairs' free DOF: agreement placed it, no pairing fixes it, and in a
             # repetitive bay a wrong interpretation finds a well-agreeing place too
             free = free if id(best) in slid else min(free, ir.free_dof)
+            if ir.free_dof_without_one > params.max_free_without_one:
+                rests_on = (f"pose rests on {ir.resting_on} alone: {ir.free_dof_without_one} DOF free without it "
+                            "(had it moved, it would have carried the pose)")
         else:
             icp_note = f"; ICP not applied: {ir.reason}"
     start = _start_alternative(description, scan, model_simulator, T_init, T_final, params, timing, scale)
@@ -692,7 +706,8 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
         f"pose not pinned within {params.pin_angle_deg:g} deg / {100 * params.pin_rel:g} % of range: the probe "
         f"{PROBE_NAMES[pin_probe]} is separated by {pin_z:.2f} < {params.pin_z} standard errors")
     verdict_conf = _confidence(min(pin_z, alt_z))
-    ok = conf >= params.min_confidence and free == 0 and not ambiguous and not icp_note and not not_pinned
+    ok = (conf >= params.min_confidence and free == 0 and not ambiguous and not icp_note and not not_pinned
+          and not rests_on)
     reason = ""
     if icp_note:
         reason = "pose not refined"
@@ -706,6 +721,8 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
         reason = ambiguous
     elif not_pinned:
         reason = not_pinned
+    elif rests_on:
+        reason = rests_on
     if res.stop_reason and not ok:
         reason += f"; search stopped: {res.stop_reason}"
     return PoseResult(ok, reason + icp_note if not ok else "", T_final, T_init, cov, int(free), verdict_conf,
