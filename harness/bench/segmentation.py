@@ -347,8 +347,9 @@ def _run(args: argparse.Namespace, ap: argparse.ArgumentParser, against: _Agains
     from harness.suite import load_suite
     from harness.trial import method_params, prepare_scene, sensor_for, trial_scan, trial_viewpoints
     from recognition.describe import core_sigma, describe
-    from recognition.segmentation import segment
+    from recognition.segmentation import kernels, segment
 
+    kernels.warm_up()  # the compiled kernels' first calls stay out of the times
     suite = load_suite(args.suite)
     trials = [t for t in suite.trials if args.groups is None or t.group in args.groups.split(",")]
     if args.groups is not None and not trials:

@@ -33,12 +33,14 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.ndimage as ndi
 
+from . import kernels
 from .types import SegmentationParams
 
 __all__ = [
     "SurfaceDerivatives",
     "jump_threshold",
     "jump_pairs",
+    "jump_pairs_reference",
     "ray_angles",
     "norm3",
     "savgol_kernels",
@@ -119,9 +121,38 @@ def ray_angles(rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def jump_pairs(
     rng: np.ndarray, sigma: np.ndarray, rays: np.ndarray, k_sigma: float, tan_max_incidence: float,
-    angles: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Jump (depth discontinuity) flags between horizontally and vertically adjacent pixels.
+
+    Parameters
+    ----------
+    rng : ndarray of shape (H, W), metres, NaN where no return
+    sigma : ndarray of shape (H, W), metres
+    rays : ndarray of shape (H, W, 3), unit ray directions (NaN where no return)
+    k_sigma, tan_max_incidence : float
+        See :func:`jump_threshold`; the angle between two rays is the chord of :func:`ray_angles`.
+
+    Returns
+    -------
+    jump_h : ndarray of shape (H, W - 1), bool
+        True when pixel (i, j) and (i, j + 1) both have returns and are on different sides of a jump.
+    jump_v : ndarray of shape (H - 1, W), bool
+        The same for (i, j) and (i + 1, j).
+
+    Notes
+    -----
+    The compiled :func:`.kernels.jump_pairs`; :func:`jump_pairs_reference` is the same in numpy.
+    """
+    f64 = np.float64
+    return kernels.jump_pairs(np.asarray(rng, f64), np.asarray(sigma, f64), np.asarray(rays, f64),
+                              float(k_sigma), float(tan_max_incidence))
+
+
+def jump_pairs_reference(
+    rng: np.ndarray, sigma: np.ndarray, rays: np.ndarray, k_sigma: float, tan_max_incidence: float,
+    angles: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`jump_pairs` in numpy (its reference), from the :func:`ray_angles` when already at hand.
 
     Parameters
     ----------

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.ndimage as ndi
 
-from .derivatives import clean_windows, jump_pairs, ray_angles, savgol_kernels
+from .derivatives import clean_windows, jump_pairs, savgol_kernels
 from .grid import _Grid
 from .types import EdgeType, SegmentationParams
 
@@ -32,13 +32,12 @@ def _image_grid(points: np.ndarray, sigma: np.ndarray,
         rays = pts / rng[..., None]
     declared = sig
     scale = None
-    angles = ray_angles(rays)
-    jump_h, jump_v = jump_pairs(rng, sig, rays, params.jump_k, params.jump_tan, angles)
+    jump_h, jump_v = jump_pairs(rng, sig, rays, params.jump_k, params.jump_tan)
     if params.calibrate_noise:
         scale = noise_scale(rng, sig, valid, jump_h, jump_v, params.window, params.max_noise_scale,
                             params.noise_block)
         sig = sig * scale
-        jump_h, jump_v = jump_pairs(rng, sig, rays, params.jump_k, params.jump_tan, angles)
+        jump_h, jump_v = jump_pairs(rng, sig, rays, params.jump_k, params.jump_tan)
     return _Grid(pts, sig, valid, rng, rays, jump_h, jump_v), declared, scale
 
 

@@ -10,6 +10,7 @@ import scipy.ndimage as ndi
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from . import kernels
 from .derivatives import jump_pairs
 from .types import SegmentationParams
 
@@ -62,7 +63,18 @@ class _State:
 
 
 def _groups(labels: np.ndarray) -> dict[int, np.ndarray]:
-    """Flat pixel indices of each label >= 0 (increasing)."""
+    """Flat pixel indices of each label >= 0 (increasing), by counting (:func:`.kernels.group_order`; the
+    reference is :func:`_groups_reference`)."""
+    flat = labels.ravel()
+    if flat.size == 0 or flat.max() < 0:
+        return {}
+    order, starts, counts = kernels.group_order(flat.astype(np.int64), int(flat.max()) + 1)
+    return {k: order[s:s + c] for k, s, c in zip(np.flatnonzero(counts).tolist(), starts[counts > 0].tolist(),
+                                                  counts[counts > 0].tolist(), strict=True)}
+
+
+def _groups_reference(labels: np.ndarray) -> dict[int, np.ndarray]:
+    """:func:`_groups` by ``scipy.ndimage.value_indices``."""
     flat = labels.ravel()
     if flat.size == 0 or flat.max() < 0:
         return {}

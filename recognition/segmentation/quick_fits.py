@@ -23,6 +23,7 @@ from recognition.fitting import (
     taubin_fit,
 )
 
+from . import kernels
 from .derivatives import norm3
 from .grid import _is_planar_counts, _rms, _State, _subsample
 from .types import SegmentationParams
@@ -295,8 +296,12 @@ def _fit_groups(groups: dict[int, np.ndarray], st: _State, params: SegmentationP
 
 
 def _pixel_residuals(P: np.ndarray, lab: np.ndarray, X: np.ndarray, U: np.ndarray, S: np.ndarray) -> np.ndarray:
-    """|range residual| in sigma of points X (N, 3) to the surfaces P[lab] (per point), as in _quick_fit."""
-    return _ray_z(P.T.take(lab, axis=1), X.T.copy(), U, S)
+    """|range residual| in sigma of points X (N, 3) to the surfaces P[lab] (per point), as in _quick_fit: the
+    compiled :func:`.kernels.ray_z_by_label`, equal to ``_ray_z(P.T.take(lab, axis=1), X.T.copy(), U, S)``."""
+    f64 = np.float64
+    return kernels.ray_z_by_label(np.ascontiguousarray(P, f64), np.ascontiguousarray(lab, np.int64),
+                                  np.ascontiguousarray(X, f64), np.ascontiguousarray(U, f64),
+                                  np.ascontiguousarray(S, f64))
 
 
 def _ray_z(p: np.ndarray, x: np.ndarray, U: np.ndarray, S: np.ndarray, f: np.ndarray | None = None) -> np.ndarray:

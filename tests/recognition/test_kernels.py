@@ -1,0 +1,154 @@
+"""The compiled kernels of the segmentation (recognition.segmentation.kernels) against their numpy references,
+on random inputs: fast path == slow reference.
+
+The kernels do the references' arithmetic operation by operation; floats are compared to 1e-15 relative, not
+bit for bit, since numpy's own summation order of a 3-vector depends on its SIMD path
+(``python -m harness.bench.stability``); labels and flags, which follow from them, are compared exactly on
+inputs where no value sits within rounding of a threshold.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.ndimage as ndi
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from recognition.segmentation import kernels
+from recognition.segmentation.curvature import curvatures_reference
+from recognition.segmentation.derivatives import jump_pairs, jump_pairs_reference, quadratic_derivatives
+from recognition.segmentation.grid import _groups, _groups_reference, _neighbour_links, _State
+from recognition.segmentation.growing import _grow, _grow_reference
+from recognition.segmentation.quick_fits import _pixel_residuals, _ray_z
+
+SEEDS = st.integers(0, 2**31 - 1)
+
+
+def _close(a: np.ndarray, b: np.ndarray) -> None:
+    """Equal to 1e-15 relative (and NaN / inf where the other has them)."""
+    np.testing.assert_allclose(a, b, rtol=1e-15, atol=0.0, equal_nan=True)
+
+
+def _wavy_image(seed: int, h: int, w: int, holes: float, step: float):
+    """A perspective point image of a wavy surface with steps (jumps) and holes: points (h, w, 3), sigma (h, w)."""
+    gen = np.random.default_rng(seed)
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    rays = np.stack([(u - w / 2) / (1.2 * w), (v - h / 2) / (1.2 * w), np.ones((h, w))], -1)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    r = 2.0 + 0.1 * np.sin(u / 5.0 + gen.uniform(0, 6)) * np.cos(v / 7.0) + step * (u > gen.integers(1, w))
+    r = r + gen.normal(0.0, 1e-3, (h, w))
+    pts = rays * r[..., None]
+    sigma = np.full((h, w), 1e-3) * gen.uniform(0.5, 2.0, (h, w))
+    hole = gen.random((h, w)) < holes
+    pts[hole] = np.nan
+    sigma[hole] = np.nan
+    return pts, sigma
+
+
+@given(SEEDS, st.integers(1, 30))
+@settings(max_examples=40, deadline=None)
+def test_ray_z_by_label_equals_ray_z(seed, n_quadrics):
+    gen = np.random.default_rng(seed)
+    n = int(gen.integers(0, 200))
+    P = gen.normal(size=(n_quadrics, 10))
+    P[gen.random(n_quadrics) < 0.2] = np.nan  # a patch without a fit
+    P[gen.random(n_quadrics) < 0.2, :9] = 0.0  # a constant: no gradient, undefined residual
+    lab = gen.integers(0, n_quadrics, n)
+    X = gen.normal(size=(n, 3))
+    U = gen.normal(size=(n, 3))
+    U /= np.linalg.norm(U, axis=1, keepdims=True)
+    S = gen.uniform(0.0, 0.01, n)
+    S[gen.random(n) < 0.1] = np.nan
+    got = _pixel_residuals(P, lab, X, U, S)
+    want = _ray_z(P.T.take(lab, axis=1), X.T.copy(), U, S)
+    assert got.shape == (n,) and np.all(got >= 0)
+    _close(got, want)
+
+
+@given(st.lists(st.integers(-1, 12), min_size=0, max_size=300), st.integers(1, 40))
+@settings(max_examples=60, deadline=None)
+def test_groups_equal_value_indices(values, width):
+    labels = np.array(values + [-1] * (-len(values) % width), np.int32).reshape(-1, width)
+    got, want = _groups(labels), _groups_reference(labels)
+    assert list(got) == list(want)
+    for k in want:
+        np.testing.assert_array_equal(got[k], want[k])
+
+
+@given(SEEDS, st.floats(0.0, 0.3), st.floats(0.0, 0.5))
+@settings(max_examples=30, deadline=None)
+def test_jump_pairs_equal_the_reference(seed, holes, step):
+    pts, sigma = _wavy_image(seed, 23, 31, holes, step)
+    rng = np.linalg.norm(pts, axis=-1)
+    rays = pts / rng[..., None]
+    got = jump_pairs(rng, sigma, rays, 3.0, 2.0)
+    want = jump_pairs_reference(rng, sigma, rays, 3.0, 2.0)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, w)
+    assert want[0].any() or step < 0.01 or holes > 0  # the steps are found
+
+
+@given(SEEDS, st.floats(0.0, 0.2))
+@settings(max_examples=20, deadline=None)
+def test_curvatures_equal_the_reference(seed, holes):
+    pts, sigma = _wavy_image(seed, 21, 27, holes, 0.2)
+    der = quadratic_derivatives(pts, sigma, 5, 3.0, 2.0)
+    got = kernels.curvatures(pts, sigma, der.Pu, der.Pv, der.Puu, der.Puv, der.Pvv, der.var_u, der.var_v,
+                             der.cov2)
+    want = curvatures_reference(pts, sigma, der)
+    assert np.isfinite(want.H).sum() > 100
+    for g, w in zip(got, (want.H, want.K, want.sigma_H, want.sigma_K, want.normals, want.sigma_normal),
+                    strict=True):
+        _close(g, w)
+
+
+@given(SEEDS, st.integers(1, 12), st.floats(0.5, 60.0), st.integers(1, 40))
+@settings(max_examples=40, deadline=None)
+def test_grow_equals_the_reference(seed, n_seeds, thr, max_iter):
+    pts, sigma = _wavy_image(seed, 19, 25, 0.05, 0.3)
+    gen = np.random.default_rng(seed)
+    valid = np.isfinite(sigma)
+    rng = np.linalg.norm(pts, axis=-1)
+    rays = pts / rng[..., None]
+    jump_h, jump_v = jump_pairs(rng, sigma, rays, 3.0, 2.0)
+    links = _neighbour_links(valid.shape, valid, jump_h, jump_v)
+    st_ = _State(X=pts.reshape(-1, 3), U=rays.reshape(-1, 3), S=sigma.ravel(), hk=np.ones(valid.size, np.int64))
+    labels = np.full(valid.shape, -1, np.int32)
+    for k in range(n_seeds):  # small square seeds, some overlapping holes
+        r, c = gen.integers(0, 17), gen.integers(0, 23)
+        labels[r:r + 2, c:c + 2] = np.where(valid[r:r + 2, c:c + 2], k, -1)
+    # planes through the middle of each seed, perturbed: some pixels fit, some do not
+    P = np.zeros((n_seeds, 10))
+    P[:, 6:9] = gen.normal(0.0, 0.05, (n_seeds, 3)) + [0.0, 0.0, 1.0]
+    P[:, 9] = -gen.uniform(1.8, 2.3, n_seeds)
+    got, want = labels.copy(), labels.copy()
+    _grow(got, P, st_, links, max_iter, thr)
+    _grow_reference(want, P, st_, links, max_iter, thr)
+    np.testing.assert_array_equal(got, want)
+
+
+def test_grow_fills_a_plane_and_stops_at_a_jump():
+    """A closed case: a fronto-parallel plane at 2 m with a step of 0.5 m half-way; one seed on each side
+    grows over its own side only."""
+    h, w = 10, 12
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    rays = np.stack([(u - w / 2) / 20, (v - h / 2) / 20, np.ones((h, w))], -1)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    z = np.where(u < 6, 2.0, 2.5)
+    pts = rays * (z / rays[..., 2])[..., None]
+    sigma = np.full((h, w), 1e-3)
+    valid = np.ones((h, w), bool)
+    rng = np.linalg.norm(pts, axis=-1)
+    jump_h, jump_v = jump_pairs(rng, sigma, rays, 3.0, 2.0)
+    assert jump_h[:, 5].all() and jump_h.sum() == h  # the step, and nothing else
+    links = _neighbour_links(valid.shape, valid, jump_h, jump_v)
+    st_ = _State(X=pts.reshape(-1, 3), U=rays.reshape(-1, 3), S=sigma.ravel(), hk=np.ones(h * w, np.int64))
+    labels = np.full((h, w), -1, np.int32)
+    labels[4, 2], labels[4, 9] = 0, 1
+    P = np.zeros((2, 10))
+    P[:, 8], P[0, 9], P[1, 9] = 1.0, -2.0, -2.5  # z = 2 and z = 2.5
+    _grow(labels, P, st_, links, 100, 3.0)
+    np.testing.assert_array_equal(labels, np.where(u < 6, 0, 1))
+    # the groups of the result, by both paths
+    assert {k: v.size for k, v in _groups(labels).items()} == {0: 60, 1: 60}
+    assert ndi.label(labels == 0)[1] == 1
