@@ -380,7 +380,20 @@ def _pixel_angle(rays: np.ndarray) -> float:
 
 def _masked_fits(points, sigma, rng, rays, valid, masked, window, jump_k, jump_tan, min_support,
                  max_var_uu, chunk, outputs) -> None:
-    """Per-pixel masked quadratic fits for the pixels in ``masked``, written into ``outputs`` in place.
+    """Per-pixel masked quadratic fits for the pixels in ``masked``, written into ``outputs`` in place: the
+    compiled :func:`.kernels.masked_fits`, whose reference is :func:`_masked_fits_reference` (``chunk`` is
+    the reference's; the kernel needs no batches)."""
+    rows, cols = np.nonzero(masked)
+    f64 = np.float64
+    kernels.masked_fits(np.asarray(points, f64), np.asarray(sigma, f64), np.where(valid, rng, np.nan),
+                        rows.astype(np.int64), cols.astype(np.int64), int(window), float(jump_k), float(jump_tan),
+                        _pixel_angle(rays), int(min_support), float(max_var_uu), *outputs)
+
+
+def _masked_fits_reference(points, sigma, rng, rays, valid, masked, window, jump_k, jump_tan, min_support,
+                 max_var_uu, chunk, outputs) -> None:
+    """Per-pixel masked quadratic fits for the pixels in ``masked``, written into ``outputs`` in place, in
+    batched numpy (the reference of :func:`.kernels.masked_fits`).
 
     The angle between the centre ray and a neighbour's ray is taken as the pixel distance times the
     image's median adjacent-ray angle (exact enough for the jump allowance, and it avoids gathering rays).

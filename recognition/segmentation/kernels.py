@@ -19,7 +19,10 @@ from numba import njit
 
 from recognition.fitting import MIN_GRAZING
 
-__all__ = ["curvatures", "grow", "group_order", "jump_pairs", "ray_z_by_label", "warm_up"]
+__all__ = [
+    "checked_returns", "curvatures", "grow", "group_order", "jump_pairs", "masked_fits", "quick_fits",
+    "ray_z_by_label", "warm_up",
+]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -192,6 +195,41 @@ def _dot3(a0, a1, a2, b0, b1, b2):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def checked_returns(points, sigma, sigma_floor):
+    """The returns of a point image and what the segmentation reads of them: the kernel of
+    :func:`recognition.segmentation.edges.checked_returns_reference` (its arguments and results).
+
+    A pixel is a return where its squared range is finite and positive and its sigma finite (a range beyond
+    1e154 m, whose square overflows, is none).
+
+    Returns
+    -------
+    valid : (H, W) bool; pts : (H, W, 3), NaN where no return; sigma : (H, W), floored at ``sigma_floor``, NaN
+    where no return; rng : (H, W) metres, NaN where no return; rays : (H, W, 3) unit, NaN where no return
+    """
+    H, W = sigma.shape
+    valid = np.zeros((H, W), np.bool_)
+    pts = np.full((H, W, 3), np.nan)
+    sig = np.full((H, W), np.nan)
+    rng = np.full((H, W), np.nan)
+    rays = np.full((H, W, 3), np.nan)
+    for i in range(H):
+        for j in range(W):
+            x0, x1, x2 = points[i, j, 0], points[i, j, 1], points[i, j, 2]
+            r2 = _dot3(x0, x1, x2, x0, x1, x2)
+            s = sigma[i, j]
+            if not (np.isfinite(r2) and r2 > 0 and np.isfinite(s)):
+                continue
+            valid[i, j] = True
+            sig[i, j] = max(s, sigma_floor)
+            r = np.sqrt(r2)
+            rng[i, j] = r
+            pts[i, j, 0], pts[i, j, 1], pts[i, j, 2] = x0, x1, x2
+            rays[i, j, 0], rays[i, j, 1], rays[i, j, 2] = x0 / r, x1 / r, x2 / r
+    return valid, pts, sig, rng, rays
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _is_jump(ra, rb, sa, sb, d0, d1, d2, k_sigma, tan_max_incidence):
     ang = np.sqrt(_dot3(d0, d1, d2, d0, d1, d2))
     thr = k_sigma * np.sqrt(sa * sa + sb * sb) + tan_max_incidence * 0.5 * (ra + rb) * ang
@@ -207,16 +245,15 @@ def jump_pairs(rng, sigma, rays, k_sigma, tan_max_incidence):
     jump_h = np.zeros((H, max(W - 1, 0)), np.bool_)
     jump_v = np.zeros((max(H - 1, 0), W), np.bool_)
     for i in range(H):
+        for j in range(W - 1):
+            jump_h[i, j] = _is_jump(rng[i, j], rng[i, j + 1], sigma[i, j], sigma[i, j + 1],
+                                    rays[i, j, 0] - rays[i, j + 1, 0], rays[i, j, 1] - rays[i, j + 1, 1],
+                                    rays[i, j, 2] - rays[i, j + 1, 2], k_sigma, tan_max_incidence)
+    for i in range(H - 1):
         for j in range(W):
-            ra, sa = rng[i, j], sigma[i, j]
-            if j + 1 < W:
-                jump_h[i, j] = _is_jump(ra, rng[i, j + 1], sa, sigma[i, j + 1], rays[i, j, 0] - rays[i, j + 1, 0],
-                                        rays[i, j, 1] - rays[i, j + 1, 1], rays[i, j, 2] - rays[i, j + 1, 2],
-                                        k_sigma, tan_max_incidence)
-            if i + 1 < H:
-                jump_v[i, j] = _is_jump(ra, rng[i + 1, j], sa, sigma[i + 1, j], rays[i, j, 0] - rays[i + 1, j, 0],
-                                        rays[i, j, 1] - rays[i + 1, j, 1], rays[i, j, 2] - rays[i + 1, j, 2],
-                                        k_sigma, tan_max_incidence)
+            jump_v[i, j] = _is_jump(rng[i, j], rng[i + 1, j], sigma[i, j], sigma[i + 1, j],
+                                    rays[i, j, 0] - rays[i + 1, j, 0], rays[i, j, 1] - rays[i + 1, j, 1],
+                                    rays[i, j, 2] - rays[i + 1, j, 2], k_sigma, tan_max_incidence)
     return jump_h, jump_v
 
 
@@ -274,6 +311,316 @@ def curvatures(points, sigma, Pu, Pv, Puu, Puv, Pvv, var_u, var_v, cov2):
     return Hc, K, sH, sK, nrm, sn
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _plane_fit(X, U, S, ix, P, z, g, lo, hi):
+    """Total-least-squares plane of the points ``X[ix[lo:hi]]`` into ``P[g]``, their ray residuals (sigma) into
+    ``z[lo:hi]``; NaN / inf under 3 points."""
+    c = hi - lo
+    if c < 3:
+        P[g, :] = np.nan
+        z[lo:hi] = np.inf
+        return
+    m0 = m1 = m2 = 0.0
+    for t in range(lo, hi):
+        i = ix[t]
+        m0 += X[i, 0]
+        m1 += X[i, 1]
+        m2 += X[i, 2]
+    m0, m1, m2 = m0 / c, m1 / c, m2 / c
+    C = np.zeros((3, 3))
+    for t in range(lo, hi):
+        i = ix[t]
+        d0, d1, d2 = X[i, 0] - m0, X[i, 1] - m1, X[i, 2] - m2
+        C[0, 0] += d0 * d0
+        C[0, 1] += d0 * d1
+        C[0, 2] += d0 * d2
+        C[1, 1] += d1 * d1
+        C[1, 2] += d1 * d2
+        C[2, 2] += d2 * d2
+    C[1, 0], C[2, 0], C[2, 1] = C[0, 1], C[0, 2], C[1, 2]
+    _, V = np.linalg.eigh(C)
+    n0, n1, n2 = V[0, 0], V[1, 0], V[2, 0]
+    P[g, :] = 0.0
+    P[g, 6], P[g, 7], P[g, 8] = n0, n1, n2
+    P[g, 9] = -(n0 * m0 + n1 * m1 + n2 * m2)
+    for t in range(lo, hi):
+        i = ix[t]
+        f = (X[i, 0] - m0) * n0 + (X[i, 1] - m1) * n1 + (X[i, 2] - m2) * n2
+        gr = max(abs(U[i, 0] * n0 + U[i, 1] * n1 + U[i, 2] * n2), MIN_GRAZING)
+        v = abs(f) / (gr * S[i])
+        z[t] = v if np.isfinite(v) else np.inf
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _monomials(y0, y1, y2, m):
+    m[0], m[1], m[2] = y0 * y0, y1 * y1, y2 * y2
+    m[3], m[4], m[5] = 2 * y0 * y1, 2 * y0 * y2, 2 * y1 * y2
+    m[6], m[7], m[8], m[9] = y0, y1, y2, 1.0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _quadric_fit(X, U, S, ix, P, z, g, lo, hi, taubin_map, undetermined_below):
+    """Taubin quadric of the points ``X[ix[lo:hi]]`` (unit-norm algebraic fit where Taubin's is undefined) into
+    ``P[g]`` (metres), their ray residuals (sigma) into ``z[lo:hi]``. Returns 0, or 1 when the points determine
+    no quadric (the caller fits a plane), or 2 when the Taubin system is numerically singular."""
+    c = hi - lo
+    m0 = m1 = m2 = 0.0
+    for t in range(lo, hi):
+        i = ix[t]
+        m0 += X[i, 0]
+        m1 += X[i, 1]
+        m2 += X[i, 2]
+    m0, m1, m2 = m0 / c, m1 / c, m2 / c
+    ss = 0.0
+    for t in range(lo, hi):
+        i = ix[t]
+        d0, d1, d2 = X[i, 0] - m0, X[i, 1] - m1, X[i, 2] - m2
+        ss += d0 * d0 + d1 * d1 + d2 * d2
+    scale = np.sqrt(ss / c)
+    if not scale > 0:
+        scale = 1.0
+    M = np.zeros((10, 10))
+    mono = np.empty(10)
+    for t in range(lo, hi):
+        i = ix[t]
+        _monomials((X[i, 0] - m0) / scale, (X[i, 1] - m1) / scale, (X[i, 2] - m2) / scale, mono)
+        for a in range(10):
+            ma = mono[a]
+            for b in range(a, 10):
+                M[a, b] += ma * mono[b]
+    for a in range(10):
+        for b in range(a):
+            M[a, b] = M[b, a]
+    tr = 0.0
+    for a in range(10):
+        tr += M[a, a]
+    if not tr > 0:
+        return 1
+    if np.linalg.eigvalsh(M / tr)[1] < undetermined_below:
+        return 1
+    N9 = (M[6:, 6:].copy().reshape(16) @ taubin_map).reshape(9, 9)
+    evn = np.linalg.eigvalsh(N9)
+    m99 = M[9, 9]
+    pn = np.empty(10)
+    if evn[0] > 1e-12 * max(evn[8], 1e-300) and m99 > 0:
+        Sg = M[:9, :9] - np.outer(M[:9, 9], M[9, :9]) / m99
+        try:
+            L = np.linalg.cholesky(N9)
+        except Exception:  # noqa: BLE001 - numba catches no narrower class; only LinAlgError can come here
+            return 2
+        A = np.linalg.solve(L, Sg)
+        A = np.linalg.solve(L, A.T.copy())
+        _, W = np.linalg.eigh(0.5 * (A + A.T))
+        q = np.linalg.solve(L.T.copy(), W[:, 0].copy())
+        pn[:9] = q
+        pn[9] = -(M[9, :9] @ q) / m99
+    else:
+        _, V = np.linalg.eigh(M)
+        pn[:] = V[:, 0]
+    pn /= np.linalg.norm(pn)
+    for t in range(lo, hi):
+        i = ix[t]
+        y0, y1, y2 = (X[i, 0] - m0) / scale, (X[i, 1] - m1) / scale, (X[i, 2] - m2) / scale
+        _monomials(y0, y1, y2, mono)
+        f = 0.0
+        for a in range(10):
+            f += mono[a] * pn[a]
+        g0 = 2 * (pn[0] * y0 + pn[3] * y1 + pn[4] * y2) + pn[6]
+        g1 = 2 * (pn[3] * y0 + pn[1] * y1 + pn[5] * y2) + pn[7]
+        g2 = 2 * (pn[4] * y0 + pn[5] * y1 + pn[2] * y2) + pn[8]
+        gr = abs(g0 * U[i, 0] + g1 * U[i, 1] + g2 * U[i, 2])
+        floor = MIN_GRAZING * np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+        v = scale * abs(f) / (max(gr, floor) * S[i])
+        z[t] = v if np.isfinite(v) else np.inf
+    # back to metres: A / s², b / s - 2 A m / s², m'Am / s² - b'm / s + c
+    is2 = 1.0 / (scale * scale)
+    a0 = pn[0] * m0 + pn[3] * m1 + pn[4] * m2
+    a1 = pn[3] * m0 + pn[1] * m1 + pn[5] * m2
+    a2 = pn[4] * m0 + pn[5] * m1 + pn[2] * m2
+    for a in range(6):
+        P[g, a] = pn[a] * is2
+    P[g, 6] = pn[6] / scale - 2.0 * a0 * is2
+    P[g, 7] = pn[7] / scale - 2.0 * a1 * is2
+    P[g, 8] = pn[8] / scale - 2.0 * a2 * is2
+    P[g, 9] = (m0 * a0 + m1 * a1 + m2 * a2) * is2 - (pn[6] * m0 + pn[7] * m1 + pn[8] * m2) / scale + pn[9]
+    nrm = 0.0
+    for a in range(10):
+        nrm += P[g, a] * P[g, a]
+    nrm = np.sqrt(nrm)
+    for a in range(10):
+        P[g, a] /= nrm
+    return 0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def quick_fits(X, U, S, ix, starts, counts, planar, taubin_map, undetermined_below):
+    """The quick fits of many groups of points: the kernel of
+    :func:`recognition.segmentation.quick_fits._quick_fits_reference`.
+
+    Group ``g`` is the points ``X[ix[starts[g]:starts[g] + counts[g]]]``; it gets a total-least-squares plane
+    when ``planar[g]``, when it has fewer than 10 points or when they determine no quadric (the second-smallest
+    eigenvalue of their normalised moments under ``undetermined_below``), a Taubin quadric otherwise.
+
+    Returns
+    -------
+    P : ndarray of shape (G, 10)
+        Each group's surface, metres, unit norm (NaN under 3 points).
+    z : ndarray of shape (len(ix),)
+        Each point's ray residual to its group's surface, in its sigmas (inf where undefined).
+    singular : ndarray of shape (G,), bool
+        Groups whose Taubin system was numerically singular (their P and z are not set: fit them otherwise).
+    """
+    G = starts.shape[0]
+    P = np.full((G, 10), np.nan)
+    z = np.full(ix.shape[0], np.inf)
+    singular = np.zeros(G, np.bool_)
+    for g in range(G):
+        lo, hi = starts[g], starts[g] + counts[g]
+        if hi == lo:
+            continue
+        if planar[g] or hi - lo < 10:
+            _plane_fit(X, U, S, ix, P, z, g, lo, hi)
+            continue
+        status = _quadric_fit(X, U, S, ix, P, z, g, lo, hi, taubin_map, undetermined_below)
+        if status == 1:
+            _plane_fit(X, U, S, ix, P, z, g, lo, hi)
+        elif status == 2:
+            singular[g] = True
+    return P, z, singular
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _spd_inverse6(M, out):
+    """Inverse of a symmetric positive-definite 6 x 6 matrix by Cholesky, the operations of
+    :func:`recognition.segmentation.derivatives.spd_inverse` (sums in index order) for one matrix."""
+    k = 6
+    L = np.zeros((k, k))
+    for j in range(k):
+        s = 0.0
+        for t in range(j):
+            s = s + L[j, t] ** 2 if t else L[j, t] ** 2
+        L[j, j] = np.sqrt(M[j, j] - s)
+        for i in range(j + 1, k):
+            s = 0.0
+            for t in range(j):
+                s = s + L[i, t] * L[j, t] if t else L[i, t] * L[j, t]
+            L[i, j] = (M[i, j] - s) / L[j, j]
+    Li = np.zeros((k, k))
+    for i in range(k):
+        Li[i, i] = 1.0 / L[i, i]
+        for j in range(i):
+            s = 0.0
+            for t in range(j, i):
+                s = s + L[i, t] * Li[t, j] if t > j else L[i, t] * Li[t, j]
+            Li[i, j] = -s / L[i, i]
+    for i in range(k):
+        for j in range(i + 1):
+            s = 0.0
+            for t in range(i, k):
+                s = s + Li[t, i] * Li[t, j] if t > i else Li[t, i] * Li[t, j]
+            out[i, j] = s
+            out[j, i] = s
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def masked_fits(points, sigma, rng, rows, cols, window, jump_k, jump_tan, alpha, min_support, max_var_uu,
+                Pu, Pv, Puu, Puv, Pvv, var_u, var_v, cov2):
+    """Per-pixel masked quadratic fits of ``P(u, v)`` at the pixels ``(rows, cols)``, written into the outputs
+    in place: the kernel of :func:`recognition.segmentation.derivatives._masked_fits_reference`.
+
+    Each window pixel takes part when its range is within the jump allowance of the centre's
+    (``jump_k sqrt(sigma_c² + sigma²) + jump_tan r_c alpha |offset|``, ``alpha`` the image's adjacent-ray
+    angle); with at least ``min_support`` of them on at least 3 rows and 3 columns, the 6 x 6 normal equations
+    (a 1e-12 ridge) give the derivatives and their unit-noise covariances, kept where the second derivatives'
+    variances are within ``max_var_uu``. ``rng`` is NaN where there is no return.
+    """
+    H, W = rng.shape
+    h = window // 2
+    nw = window * window
+    du = np.empty(nw, np.int64)
+    dv = np.empty(nw, np.int64)
+    for w in range(nw):
+        dv[w] = w // window - h
+        du[w] = w % window - h
+    Xd = np.empty((nw, 6))
+    for w in range(nw):
+        a, b = float(du[w]), float(dv[w])
+        Xd[w, 0], Xd[w, 1], Xd[w, 2], Xd[w, 3], Xd[w, 4], Xd[w, 5] = 1.0, a, b, a * a, a * b, b * b
+    M = np.empty((6, 6))
+    inv = np.empty((6, 6))
+    rhs = np.empty((6, 3))
+    mf = np.zeros(nw, np.bool_)
+    row_hit = np.zeros(window, np.bool_)
+    col_hit = np.zeros(window, np.bool_)
+    J = (2.0, 1.0, 2.0)
+    for p in range(rows.shape[0]):
+        r, c = rows[p], cols[p]
+        rc = rng[r, c]
+        sc2 = sigma[r, c] ** 2
+        count = 0
+        row_hit[:] = False
+        col_hit[:] = False
+        for w in range(nw):
+            rr, cc = r + dv[w], c + du[w]
+            mf[w] = False
+            if rr < 0 or rr >= H or cc < 0 or cc >= W:
+                continue
+            thr = jump_k * np.sqrt(sc2 + sigma[rr, cc] ** 2) + jump_tan * rc * (alpha * np.hypot(du[w], dv[w]))
+            if abs(rng[rr, cc] - rc) <= thr:
+                mf[w] = True
+                count += 1
+                row_hit[dv[w] + h] = True
+                col_hit[du[w] + h] = True
+        if count < min_support or row_hit.sum() < 3 or col_hit.sum() < 3:
+            continue
+        M[:, :] = 0.0
+        rhs[:, :] = 0.0
+        x0, x1, x2 = points[r, c, 0], points[r, c, 1], points[r, c, 2]
+        for w in range(nw):
+            if not mf[w]:
+                continue
+            rr, cc = r + dv[w], c + du[w]
+            e0, e1, e2 = points[rr, cc, 0] - x0, points[rr, cc, 1] - x1, points[rr, cc, 2] - x2
+            for a in range(6):
+                xa = Xd[w, a]
+                for b in range(6):
+                    M[a, b] += xa * Xd[w, b]
+                rhs[a, 0] += e0 * xa
+                rhs[a, 1] += e1 * xa
+                rhs[a, 2] += e2 * xa
+        tr = 0.0
+        for a in range(6):
+            tr += M[a, a]
+        for a in range(6):
+            M[a, a] += 1e-12 * tr
+        _spd_inverse6(M, inv)
+        c00 = inv[3, 3] * J[0] * J[0]
+        c22 = inv[5, 5] * J[2] * J[2]
+        if not (c00 <= max_var_uu and c22 <= max_var_uu):
+            continue
+        for k in range(3):
+            b1 = b2 = b3 = b4 = b5 = 0.0
+            for t in range(6):
+                b1 += inv[1, t] * rhs[t, k]
+                b2 += inv[2, t] * rhs[t, k]
+                b3 += inv[3, t] * rhs[t, k]
+                b4 += inv[4, t] * rhs[t, k]
+                b5 += inv[5, t] * rhs[t, k]
+            Pu[r, c, k] = b1
+            Pv[r, c, k] = b2
+            Puu[r, c, k] = 2.0 * b3
+            Puv[r, c, k] = b4
+            Pvv[r, c, k] = 2.0 * b5
+        var_u[r, c] = inv[1, 1]
+        var_v[r, c] = inv[2, 2]
+        cov2[r, c, 0] = c00
+        cov2[r, c, 1] = inv[4, 4] * J[1] * J[1]
+        cov2[r, c, 2] = c22
+        cov2[r, c, 3] = inv[3, 4] * J[0] * J[1]
+        cov2[r, c, 4] = inv[3, 5] * J[0] * J[2]
+        cov2[r, c, 5] = inv[4, 5] * J[1] * J[2]
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel on a tiny input, so that no first call is timed."""
     P = np.zeros((1, 10))
@@ -292,4 +639,15 @@ def warm_up() -> None:
     grow(flat, P, X, U, S, steps, ok, 2, 2, 3, 3.0)
     jump_pairs(np.ones((2, 2)), np.ones((2, 2)), np.ones((2, 2, 3)), 3.0, 2.0)
     one, three = np.ones((1, 1)), np.ones((1, 1, 3))
+    checked_returns(three, one, 1e-4)
     curvatures(three, one, three, three, three, three, three, one, one, np.ones((1, 1, 6)))
+    o3, o1, o6 = np.zeros((5, 5, 3)), np.zeros((5, 5)), np.zeros((5, 5, 6))
+    masked_fits(np.ones((5, 5, 3)), o1 + 0.01, o1 + 1.0, np.array([2]), np.array([2]), 3, 3.0, 2.0, 0.01, 9, 1e3,
+                o3, o3.copy(), o3.copy(), o3.copy(), o3.copy(), o1.copy(), o1.copy(), o6)
+    from .quick_fits import _TAUBIN_MAP, UNDETERMINED_QUADRIC
+
+    gen = np.random.default_rng(0)
+    Xq = gen.normal(size=(12, 3))
+    Xq[:, 2] += 3.0
+    quick_fits(Xq, Xq / np.linalg.norm(Xq, axis=1)[:, None], np.full(12, 0.01), np.arange(12), np.zeros(2, np.int64),
+               np.array([12, 0]), np.zeros(2, np.bool_), _TAUBIN_MAP, UNDETERMINED_QUADRIC)

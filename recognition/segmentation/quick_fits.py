@@ -205,8 +205,25 @@ def _quadric_fits(X, U, S, gid, starts, cnt):
 def _quick_fits(idx_list: list[np.ndarray], planar: np.ndarray, st: _State):
     """:func:`_quick_fit` of many groups (flat pixel indices each): parameters (G, 10), per-group z arrays.
 
-    Groups of fewer than 10 points get planes, as in :func:`_quick_fit`.
+    Groups of fewer than 10 points get planes, as in :func:`_quick_fit`. The compiled
+    :func:`.kernels.quick_fits` (one pass over each group's points for its moments, then the same solution as
+    :func:`_quadric_fits`); :func:`_quick_fits_reference` is the batched numpy of the same fits.
     """
+    G = len(idx_list)
+    cnt = np.fromiter((len(i) for i in idx_list), np.int64, G)
+    starts = np.zeros(G, np.int64)
+    np.cumsum(cnt[:-1], out=starts[1:])
+    ix = np.concatenate(idx_list).astype(np.int64, copy=False) if G else np.zeros(0, np.int64)
+    P, z, singular = kernels.quick_fits(st.X, st.U, st.S, ix, starts, cnt, np.asarray(planar, np.bool_),
+                                        _TAUBIN_MAP, UNDETERMINED_QUADRIC)
+    for k in np.flatnonzero(singular):  # a numerically singular Taubin system: the one-by-one fit's fallback
+        i = idx_list[k]
+        P[k], z[starts[k]:starts[k] + cnt[k]] = _quick_fit(st.X[i], st.U[i], st.S[i], False)
+    return P, np.split(z, starts[1:]) if G else []
+
+
+def _quick_fits_reference(idx_list: list[np.ndarray], planar: np.ndarray, st: _State):
+    """:func:`_quick_fits` in batched numpy (its reference): parameters (G, 10), per-group z arrays."""
     G = len(idx_list)
     P = np.full((G, 10), np.nan)
     zs: list[np.ndarray] = [np.zeros(0)] * G

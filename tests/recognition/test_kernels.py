@@ -152,3 +152,91 @@ def test_grow_fills_a_plane_and_stops_at_a_jump():
     # the groups of the result, by both paths
     assert {k: v.size for k, v in _groups(labels).items()} == {0: 60, 1: 60}
     assert ndi.label(labels == 0)[1] == 1
+
+
+def _surface_groups(seed: int, n_groups: int):
+    """Groups of noisy points on random spheres, cylinders and planes seen from the origin, some tiny, one a
+    strip one pixel wide (points that determine no quadric), as the segmentation's fits see them."""
+    gen = np.random.default_rng(seed)
+    X, groups = [], []
+    for g in range(n_groups):
+        n = int(gen.choice([2, 5, 12, 40, 300]))
+        kind = g % 4
+        uv = gen.uniform(-0.3, 0.3, (n, 2))
+        if kind == 3:
+            uv[:, 1] = 0.0  # a strip: every point in one plane through the sensor
+        r = gen.uniform(0.1, 1.0)
+        if kind == 0:  # sphere cap
+            p = np.stack([r * np.sin(uv[:, 0]), r * np.sin(uv[:, 1]), -r * np.cos(uv[:, 0]) * np.cos(uv[:, 1])], 1)
+        elif kind == 1:  # cylinder piece
+            p = np.stack([r * np.sin(uv[:, 0]), uv[:, 1], -r * np.cos(uv[:, 0])], 1)
+        else:  # plane
+            p = np.stack([uv[:, 0], uv[:, 1], 0.2 * uv[:, 0]], 1)
+        p = p + [0.0, 0.0, gen.uniform(2.0, 4.0)] + gen.normal(0.0, 1e-3, (n, 3))
+        groups.append(np.arange(len(X) and sum(map(len, X)), sum(map(len, X)) + n))
+        X.append(p)
+    X = np.concatenate(X)
+    U = X / np.linalg.norm(X, axis=1, keepdims=True)
+    S = np.full(len(X), 1e-3)
+    return _State(X=X, U=U, S=S, hk=np.ones(len(X), np.int64)), groups, gen.random(n_groups) < 0.3
+
+
+@given(SEEDS, st.integers(1, 12))
+@settings(max_examples=40, deadline=None)
+def test_quick_fits_equal_the_batched_reference(seed, n_groups):
+    """The compiled fits against the batched numpy ones: the same surfaces (up to the sign an eigenvector
+    takes) and residuals, to the rounding of moments summed in another order."""
+    from recognition.segmentation.quick_fits import _quick_fits, _quick_fits_reference
+
+    st_, groups, planar = _surface_groups(seed, n_groups)
+    P, zs = _quick_fits(groups, planar, st_)
+    Pr, zr = _quick_fits_reference(groups, planar, st_)
+    assert P.shape == Pr.shape == (n_groups, 10)
+    for g in range(n_groups):
+        if np.isnan(Pr[g]).all():
+            assert np.isnan(P[g]).all() and np.isinf(zs[g]).all()
+            continue
+        sign = np.sign(P[g] @ Pr[g])
+        np.testing.assert_allclose(sign * P[g], Pr[g], rtol=1e-6, atol=1e-8)
+        np.testing.assert_allclose(zs[g], zr[g], rtol=1e-5, atol=1e-6)  # (grazing points: 1e-6 seen)
+
+
+@given(SEEDS, st.floats(0.0, 0.3), st.sampled_from([5, 7]))
+@settings(max_examples=25, deadline=None)
+def test_masked_fits_equal_the_reference(seed, holes, window):
+    from recognition.segmentation.derivatives import _masked_fits, _masked_fits_reference
+
+    pts, sigma = _wavy_image(seed, 17, 23, holes, 0.3)
+    valid = np.isfinite(pts).all(axis=-1) & np.isfinite(sigma)
+    rng = np.linalg.norm(pts, axis=-1)
+    rays = pts / rng[..., None]
+    masked = valid.copy()
+
+    def outputs():
+        return tuple(np.full(shape, np.nan) for shape in [(17, 23, 3)] * 5 + [(17, 23)] * 2 + [(17, 23, 6)])
+
+    got, want = outputs(), outputs()
+    args = (pts, sigma, rng, rays, valid, masked, window, 3.0, 2.0, max(9, window * window // 3), 1e3)
+    _masked_fits(*args, 64, got)
+    _masked_fits_reference(*args, 64, want)
+    assert np.isfinite(want[0]).any()
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-9, atol=1e-12, equal_nan=True)
+
+
+@given(SEEDS, st.floats(0.0, 0.5))
+@settings(max_examples=25, deadline=None)
+def test_checked_returns_equal_the_reference(seed, holes):
+    from recognition.segmentation.edges import checked_returns, checked_returns_reference
+
+    pts, sigma = _wavy_image(seed, 9, 13, holes, 0.3)
+    gen = np.random.default_rng(seed)
+    pts[gen.random((9, 13)) < 0.1] = 0.0  # no range
+    pts[0, 0] = [1e160, 0.0, 0.0]  # its square overflows: no return
+    sigma[gen.random((9, 13)) < 0.1] = 1e-6  # below the floor
+    got = checked_returns(pts, sigma, 1e-4)
+    want = checked_returns_reference(pts, sigma, 1e-4)
+    assert not want[0][0, 0] and np.nanmin(want[2]) >= 1e-4
+    np.testing.assert_array_equal(got[0], want[0])
+    for g, w in zip(got[1:], want[1:], strict=True):
+        _close(g, w)
