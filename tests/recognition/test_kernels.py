@@ -35,7 +35,7 @@ def _wavy_image(seed: int, h: int, w: int, holes: float, step: float):
     v, u = np.mgrid[0:h, 0:w].astype(float)
     rays = np.stack([(u - w / 2) / (1.2 * w), (v - h / 2) / (1.2 * w), np.ones((h, w))], -1)
     rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
-    r = 2.0 + 0.1 * np.sin(u / 5.0 + gen.uniform(0, 6)) * np.cos(v / 7.0) + step * (u > gen.integers(1, w))
+    r = 2.0 + 0.1 * np.sin(u / 5.0 + gen.uniform(0, 6)) * np.cos(v / 7.0) + step * (u > gen.integers(1, w - 1))
     r = r + gen.normal(0.0, 1e-3, (h, w))
     pts = rays * r[..., None]
     sigma = np.full((h, w), 1e-3) * gen.uniform(0.5, 2.0, (h, w))
