@@ -236,7 +236,28 @@ def window_design(window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _full_window_derivatives(points0: np.ndarray, window: int) -> tuple[np.ndarray, ...]:
-    """Separable Savitzky-Golay derivatives of a NaN-free point image (values outside ``full`` are junk)."""
+    """Separable Savitzky-Golay derivatives of a NaN-free point image (values outside ``full`` are junk): the
+    compiled :func:`.kernels.savgol_derivatives`, which sums as ``scipy.ndimage.correlate1d`` does
+    (:func:`_full_window_derivatives_reference`)."""
+    k = savgol_kernels(window)
+    kinds = np.array([_symmetry(k[name]) for name in ("box", "d1", "d2")])
+    return kernels.savgol_derivatives(np.asarray(points0, np.float64), k["box"], k["d1"], k["d2"], kinds)
+
+
+def _symmetry(w: np.ndarray) -> int:
+    """1 for a symmetric odd kernel, -1 for an antisymmetric one, as ``scipy.ndimage`` tells them apart (to
+    ``DBL_EPSILON``); the Savitzky-Golay kernels are one or the other."""
+    h = len(w) // 2
+    eps = np.finfo(np.float64).eps
+    if all(abs(w[h + i] - w[h - i]) <= eps for i in range(1, h + 1)):
+        return 1
+    if all(abs(w[h + i] + w[h - i]) <= eps for i in range(1, h + 1)):
+        return -1
+    raise ValueError("a Savitzky-Golay kernel is symmetric or antisymmetric")
+
+
+def _full_window_derivatives_reference(points0: np.ndarray, window: int) -> tuple[np.ndarray, ...]:
+    """:func:`_full_window_derivatives` by ``scipy.ndimage.correlate1d`` (its reference)."""
     k = savgol_kernels(window)
     row = {name: ndi.correlate1d(points0, k[name], axis=1, mode="nearest") for name in ("box", "d1", "d2")}
     Pu = ndi.correlate1d(row["d1"], k["box"], axis=0, mode="nearest")

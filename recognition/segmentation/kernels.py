@@ -21,7 +21,7 @@ from recognition.fitting import MIN_GRAZING
 
 __all__ = [
     "checked_returns", "curvatures", "grow", "group_order", "jump_pairs", "masked_fits", "quick_fits",
-    "ray_z_by_label", "warm_up",
+    "ray_z_by_label", "savgol_derivatives", "warm_up",
 ]
 
 
@@ -621,6 +621,86 @@ def masked_fits(points, sigma, rng, rows, cols, window, jump_k, jump_tan, alpha,
         cov2[r, c, 5] = inv[4, 5] * J[1] * J[2]
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _correlate_nearest(line, n, h, w, kind, out):
+    """``scipy.ndimage.correlate1d(x, w, mode="nearest")`` of the ``n`` values ``x = line[h:h + n]`` (``line``
+    already extended by ``h`` copies of its end values on both sides) into ``out[:n]``, summed as ndimage sums
+    an odd kernel: ``kind`` 1 symmetric (``x[i] w[h] + sum (x[i + j] + x[i - j]) w[h + j]``), -1 antisymmetric
+    (``x[i] w[h] + sum (x[i + j] - x[i - j]) w[h + j]``), 0 in index order; ``j`` from ``-h`` to -1."""
+    for i in range(n):
+        c = i + h
+        acc = line[c] * w[h]
+        if kind > 0:
+            for jj in range(-h, 0):
+                acc += (line[c + jj] + line[c - jj]) * w[h + jj]
+        elif kind < 0:
+            for jj in range(-h, 0):
+                acc += (line[c + jj] - line[c - jj]) * w[h + jj]
+        else:
+            acc = line[c + h] * w[2 * h]
+            for jj in range(-h, h):
+                acc += line[c + jj] * w[h + jj]
+        out[i] = acc
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _extend(line, n, h):
+    """Extend ``line[h:h + n]`` by ``h`` copies of its end values on both sides (ndimage's ``nearest``)."""
+    for k in range(h):
+        line[k] = line[h]
+        line[h + n + k] = line[h + n - 1]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def savgol_derivatives(points0, box, d1, d2, kinds):
+    """Separable Savitzky-Golay derivatives ``(Pu, Pv, Puu, Puv, Pvv)``, each (H, W, 3), of a NaN-free point
+    image: the kernel of :func:`recognition.segmentation.derivatives._full_window_derivatives_reference`
+    (rows filtered with ``box``, ``d1``, ``d2``, then columns; ``kinds`` the symmetry of each kernel, as
+    ``scipy.ndimage`` finds it)."""
+    H, W = points0.shape[0], points0.shape[1]
+    h = box.shape[0] // 2
+    rows = np.empty((3, 3, H, W))  # (box, d1, d2 along the rows, coordinate, row, column)
+    line = np.empty(W + 2 * h)
+    out = np.empty(W)
+    kernels = (box, d1, d2)
+    for c in range(3):
+        for i in range(H):
+            for j in range(W):
+                line[h + j] = points0[i, j, c]
+            _extend(line, W, h)
+            for k in range(3):
+                _correlate_nearest(line, W, h, kernels[k], kinds[k], out)
+                rows[k, c, i, :] = out[:W]
+    Pu = np.empty((H, W, 3))
+    Pv = np.empty((H, W, 3))
+    Puu = np.empty((H, W, 3))
+    Puv = np.empty((H, W, 3))
+    Pvv = np.empty((H, W, 3))
+    # (source along the rows, kernel down the columns, target, factor)
+    plan = ((1, 0, 0, 1.0), (0, 1, 1, 1.0), (2, 0, 2, 2.0), (1, 1, 3, 1.0), (0, 2, 4, 2.0))
+    targets = (Pu, Pv, Puu, Puv, Pvv)
+    acc = np.empty(W)
+    for src, ker, tgt, factor in plan:
+        T, w, kind = targets[tgt], kernels[ker], kinds[ker]
+        for c in range(3):
+            R = rows[src, c]
+            for i in range(H):  # down the columns, a row of outputs at a time (contiguous)
+                for j in range(W):
+                    acc[j] = R[i, j] * w[h]
+                for jj in range(-h, 0):
+                    a, b = R[max(i + jj, 0)], R[min(i - jj, H - 1)]
+                    wj = w[h + jj]
+                    if kind > 0:
+                        for j in range(W):
+                            acc[j] += (a[j] + b[j]) * wj
+                    else:
+                        for j in range(W):
+                            acc[j] += (a[j] - b[j]) * wj
+                for j in range(W):
+                    T[i, j, c] = factor * acc[j]
+    return Pu, Pv, Puu, Puv, Pvv
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel on a tiny input, so that no first call is timed."""
     P = np.zeros((1, 10))
@@ -640,6 +720,8 @@ def warm_up() -> None:
     jump_pairs(np.ones((2, 2)), np.ones((2, 2)), np.ones((2, 2, 3)), 3.0, 2.0)
     one, three = np.ones((1, 1)), np.ones((1, 1, 3))
     checked_returns(three, one, 1e-4)
+    w = np.array([1.0, 1.0, 1.0]) / 3
+    savgol_derivatives(np.ones((3, 3, 3)), w, np.array([-0.5, 0.0, 0.5]), w, np.array([1, -1, 1]))
     curvatures(three, one, three, three, three, three, three, one, one, np.ones((1, 1, 6)))
     o3, o1, o6 = np.zeros((5, 5, 3)), np.zeros((5, 5)), np.zeros((5, 5, 6))
     masked_fits(np.ones((5, 5, 3)), o1 + 0.01, o1 + 1.0, np.array([2]), np.array([2]), 3, 3.0, 2.0, 0.01, 9, 1e3,

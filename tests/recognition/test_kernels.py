@@ -240,3 +240,15 @@ def test_checked_returns_equal_the_reference(seed, holes):
     np.testing.assert_array_equal(got[0], want[0])
     for g, w in zip(got[1:], want[1:], strict=True):
         _close(g, w)
+
+
+@given(SEEDS, st.sampled_from([3, 5, 7, 9]), st.integers(1, 30), st.integers(1, 30))
+@settings(max_examples=40, deadline=None)
+def test_savgol_derivatives_equal_ndimage(seed, window, h, w):
+    """The separable Savitzky-Golay kernel sums as scipy.ndimage.correlate1d (mode nearest) does: the same
+    bits, on images smaller than the window too."""
+    from recognition.segmentation.derivatives import _full_window_derivatives, _full_window_derivatives_reference
+
+    p = np.random.default_rng(seed).normal(size=(h, w, 3)) * 3.0
+    for g, r in zip(_full_window_derivatives(p, window), _full_window_derivatives_reference(p, window), strict=True):
+        np.testing.assert_array_equal(g, r)
