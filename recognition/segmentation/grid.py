@@ -92,6 +92,16 @@ def _rms(z: np.ndarray) -> float:
     return float(np.sqrt(z @ z / z.size)) if z.size else float("inf")
 
 
+def _planar_groups(groups: list[np.ndarray], hk: np.ndarray) -> np.ndarray:
+    """(G,) bool: :func:`_is_planar_counts` of each group's curvature classes ``hk`` (flat, 0..4), in one count."""
+    if not groups:
+        return np.zeros(0, bool)
+    sizes = np.fromiter((g.size for g in groups), np.int64, len(groups))
+    gid = np.repeat(np.arange(len(groups)), sizes)
+    c = np.bincount(gid * 5 + hk[np.concatenate(groups)], minlength=5 * len(groups)).reshape(-1, 5)
+    return c[:, 1] >= c[:, 1:].max(axis=1)
+
+
 def _is_planar_counts(counts: np.ndarray) -> bool:
     """Whether planar pixels (class 1) are the patch's most common curvature class (or it has none)."""
     c = counts.tolist()

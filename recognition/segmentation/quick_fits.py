@@ -25,7 +25,7 @@ from recognition.fitting import (
 
 from . import kernels
 from .derivatives import norm3
-from .grid import _is_planar_counts, _rms, _State, _subsample
+from .grid import _planar_groups, _rms, _State, _subsample
 from .types import SegmentationParams
 
 #: below this, the second-smallest eigenvalue of a group's normalised monomial moments (``M / trace M``) says
@@ -255,7 +255,7 @@ def _quick_fits_of(groups: dict[int, np.ndarray], keys: list[int], st: _State,
     """The quick fit (plane or quadric by the patch's H-K classes, on a subsample) of each patch ``keys`` of
     ``groups``, in one batch: ``{label: parameters (10,)}``."""
     P, _ = _quick_fits([_subsample(groups[k], params.max_fit_points) for k in keys],
-                       np.array([_is_planar_counts(np.bincount(st.hk[groups[k]], minlength=5)) for k in keys]), st)
+                       _planar_groups([groups[k] for k in keys], st.hk), st)
     return dict(zip(keys, P, strict=True))
 
 
@@ -282,7 +282,7 @@ def _fit_groups(groups: dict[int, np.ndarray], st: _State, params: SegmentationP
         return P
     labs = list(groups)
     subs = [_subsample(groups[k], params.max_fit_points) for k in labs]
-    planar = np.array([_is_planar_counts(np.bincount(st.hk[groups[k]], minlength=5)) for k in labs])
+    planar = _planar_groups([groups[k] for k in labs], st.hk)
     Pg, zs = _quick_fits(subs, planar, st)
     # not a plane after all: curvature undefined (thin pipes: every window crosses a jump) or within its
     # noise (a pipe seen close up by a fine-grained sensor, whose windows span a few mm)

@@ -252,3 +252,16 @@ def test_savgol_derivatives_equal_ndimage(seed, window, h, w):
     p = np.random.default_rng(seed).normal(size=(h, w, 3)) * 3.0
     for g, r in zip(_full_window_derivatives(p, window), _full_window_derivatives_reference(p, window), strict=True):
         np.testing.assert_array_equal(g, r)
+
+
+@given(st.lists(st.lists(st.integers(0, 4), min_size=0, max_size=30), min_size=0, max_size=12))
+@settings(max_examples=60, deadline=None)
+def test_planar_groups_equal_the_per_group_counts(classes):
+    """The planar test of many groups in one count == group by group (a group of no pixel is planar)."""
+    from recognition.segmentation.grid import _is_planar_counts, _planar_groups
+
+    hk = np.array([c for g in classes for c in g], np.int64)
+    bounds = np.cumsum([0] + [len(g) for g in classes])
+    groups = [np.arange(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    want = [_is_planar_counts(np.bincount(hk[g], minlength=5)) for g in groups]
+    np.testing.assert_array_equal(_planar_groups(groups, hk), np.array(want, bool))
