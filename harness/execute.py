@@ -76,6 +76,10 @@ def _import_numerics() -> None:
     import open3d  # noqa: F401 - imported once here so that no trial child pays for it
     import threadpoolctl  # noqa: F401
 
+    from recognition.segmentation import kernels
+
+    kernels.warm_up()  # compiled (or loaded from numba's cache) once here, not in every trial child
+
 
 def _child_record(spec: TrialSpec, plan: TrialPlan, prepared, artifacts_dir: str | None) -> dict[str, Any]:
     from harness.trial import TrialFailure, run_trial

@@ -37,6 +37,7 @@ import numpy as np
 
 from evaluation.metrics import MIN_SCORED_PIXELS
 from recognition.describe import DescribeParams
+from reports import generated_blocks as blocks
 from reports.document import Cell, Note, Para, Section, Table
 
 __all__ = ["CITATION", "PAPER_ROWS", "PaperRow", "CLAIM_BAND", "SIZE_CLASSES", "Stats", "compact", "conditions",
@@ -491,15 +492,13 @@ def load_compact(source: str | Path) -> dict[str, Any]:
 
 
 def replace_block(text: str, block: str, source: str = "<text>") -> str:
-    if BEGIN not in text or END not in text:
-        raise ValueError(f"{source}: no generated block (the lines {BEGIN!r} and {END!r})")
-    head, rest = text.split(BEGIN, 1)
-    _, tail = rest.split(END, 1)
-    return f"{head}{BEGIN}\n{block}{END}{tail}"
+    """``text`` with its generated block (between :data:`BEGIN` and :data:`END`) replaced by ``block``."""
+    return blocks.replace_block(text, block, BEGIN, END, source)
 
 
 def generated_block(text: str) -> str:
-    return text.split(BEGIN, 1)[1].split(END, 1)[0].removeprefix("\n")
+    """What lies between the markers of ``text`` (the part :func:`replace_block` writes)."""
+    return blocks.generated_block(text, BEGIN, END)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -78,7 +78,9 @@ which steps run for which image size): :mod:`.edges` (returns, jump pairs, the n
 then on decimated grids only :mod:`.refinement` (7), :mod:`.merging` again, :mod:`.splits` (8) and
 :mod:`.reassignment` (9); finally :mod:`.peel` (10) and :mod:`.final_fits`. :mod:`.grid` and :mod:`.quick_fits`
 hold what the steps share (pixel groups, adjacency; the batched plane and quadric fits that test growth, merges
-and splits), :mod:`.types` the parameters and results. Settings travel one way: the frozen
+and splits), :mod:`.types` the parameters and results, :mod:`.kernels` the compiled (numba) inner loops that
+the steps call: growing, residuals, pixel groups, jump pairs, the derivatives and curvatures, the quick fits,
+each beside its numpy reference (``*_reference``) and held equal to it by the tests. Settings travel one way: the frozen
 :class:`SegmentationParams`, passed explicitly to every step (those on the segmentation grid get
 ``params.scaled(d)``); helpers on plain point sets take values.
 """

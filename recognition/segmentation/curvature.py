@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.ndimage as ndi
 
+from . import kernels
 from .derivatives import norm3, quadratic_derivatives
 from .edges import _edge_image
 from .grid import _Grid
@@ -34,6 +35,16 @@ def curvature_images(points: np.ndarray, sigma: np.ndarray, params: Segmentation
     """
     der = quadratic_derivatives(points, sigma, params.window, params.jump_k, params.jump_tan,
                                 max_variance_ratio=params.max_variance_ratio, jumps=jumps)
+    f64 = np.float64
+    return CurvatureImages(*kernels.curvatures(
+        np.asarray(points, f64), np.asarray(sigma, f64), der.Pu, der.Pv, der.Puu, der.Puv, der.Pvv, der.var_u,
+        der.var_v, der.cov2))
+
+
+def curvatures_reference(points: np.ndarray, sigma: np.ndarray, der) -> CurvatureImages:
+    """The curvature images of :func:`curvature_images` from its derivatives ``der``
+    (:class:`~recognition.segmentation.derivatives.SurfaceDerivatives`), in numpy: the reference of the
+    compiled :func:`.kernels.curvatures`."""
     Pu, Pv = der.Pu, der.Pv
     E = np.einsum("ijk,ijk->ij", Pu, Pu)
     F = np.einsum("ijk,ijk->ij", Pu, Pv)

@@ -33,12 +33,14 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.ndimage as ndi
 
+from . import kernels
 from .types import SegmentationParams
 
 __all__ = [
     "SurfaceDerivatives",
     "jump_threshold",
     "jump_pairs",
+    "jump_pairs_reference",
     "ray_angles",
     "norm3",
     "savgol_kernels",
@@ -119,9 +121,38 @@ def ray_angles(rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def jump_pairs(
     rng: np.ndarray, sigma: np.ndarray, rays: np.ndarray, k_sigma: float, tan_max_incidence: float,
-    angles: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Jump (depth discontinuity) flags between horizontally and vertically adjacent pixels.
+
+    Parameters
+    ----------
+    rng : ndarray of shape (H, W), metres, NaN where no return
+    sigma : ndarray of shape (H, W), metres
+    rays : ndarray of shape (H, W, 3), unit ray directions (NaN where no return)
+    k_sigma, tan_max_incidence : float
+        See :func:`jump_threshold`; the angle between two rays is the chord of :func:`ray_angles`.
+
+    Returns
+    -------
+    jump_h : ndarray of shape (H, W - 1), bool
+        True when pixel (i, j) and (i, j + 1) both have returns and are on different sides of a jump.
+    jump_v : ndarray of shape (H - 1, W), bool
+        The same for (i, j) and (i + 1, j).
+
+    Notes
+    -----
+    The compiled :func:`.kernels.jump_pairs`; :func:`jump_pairs_reference` is the same in numpy.
+    """
+    f64 = np.float64
+    return kernels.jump_pairs(np.asarray(rng, f64), np.asarray(sigma, f64), np.asarray(rays, f64),
+                              float(k_sigma), float(tan_max_incidence))
+
+
+def jump_pairs_reference(
+    rng: np.ndarray, sigma: np.ndarray, rays: np.ndarray, k_sigma: float, tan_max_incidence: float,
+    angles: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`jump_pairs` in numpy (its reference), from the :func:`ray_angles` when already at hand.
 
     Parameters
     ----------
@@ -205,7 +236,28 @@ def window_design(window: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _full_window_derivatives(points0: np.ndarray, window: int) -> tuple[np.ndarray, ...]:
-    """Separable Savitzky-Golay derivatives of a NaN-free point image (values outside ``full`` are junk)."""
+    """Separable Savitzky-Golay derivatives of a NaN-free point image (values outside ``full`` are junk): the
+    compiled :func:`.kernels.savgol_derivatives`, which sums as ``scipy.ndimage.correlate1d`` does
+    (:func:`_full_window_derivatives_reference`)."""
+    k = savgol_kernels(window)
+    kinds = np.array([_symmetry(k[name]) for name in ("box", "d1", "d2")])
+    return kernels.savgol_derivatives(np.asarray(points0, np.float64), k["box"], k["d1"], k["d2"], kinds)
+
+
+def _symmetry(w: np.ndarray) -> int:
+    """1 for a symmetric odd kernel, -1 for an antisymmetric one, as ``scipy.ndimage`` tells them apart (to
+    ``DBL_EPSILON``); the Savitzky-Golay kernels are one or the other."""
+    h = len(w) // 2
+    eps = np.finfo(np.float64).eps
+    if all(abs(w[h + i] - w[h - i]) <= eps for i in range(1, h + 1)):
+        return 1
+    if all(abs(w[h + i] + w[h - i]) <= eps for i in range(1, h + 1)):
+        return -1
+    raise ValueError("a Savitzky-Golay kernel is symmetric or antisymmetric")
+
+
+def _full_window_derivatives_reference(points0: np.ndarray, window: int) -> tuple[np.ndarray, ...]:
+    """:func:`_full_window_derivatives` by ``scipy.ndimage.correlate1d`` (its reference)."""
     k = savgol_kernels(window)
     row = {name: ndi.correlate1d(points0, k[name], axis=1, mode="nearest") for name in ("box", "d1", "d2")}
     Pu = ndi.correlate1d(row["d1"], k["box"], axis=0, mode="nearest")
@@ -349,7 +401,20 @@ def _pixel_angle(rays: np.ndarray) -> float:
 
 def _masked_fits(points, sigma, rng, rays, valid, masked, window, jump_k, jump_tan, min_support,
                  max_var_uu, chunk, outputs) -> None:
-    """Per-pixel masked quadratic fits for the pixels in ``masked``, written into ``outputs`` in place.
+    """Per-pixel masked quadratic fits for the pixels in ``masked``, written into ``outputs`` in place: the
+    compiled :func:`.kernels.masked_fits`, whose reference is :func:`_masked_fits_reference` (``chunk`` is
+    the reference's; the kernel needs no batches)."""
+    rows, cols = np.nonzero(masked)
+    f64 = np.float64
+    kernels.masked_fits(np.asarray(points, f64), np.asarray(sigma, f64), np.where(valid, rng, np.nan),
+                        rows.astype(np.int64), cols.astype(np.int64), int(window), float(jump_k), float(jump_tan),
+                        _pixel_angle(rays), int(min_support), float(max_var_uu), *outputs)
+
+
+def _masked_fits_reference(points, sigma, rng, rays, valid, masked, window, jump_k, jump_tan, min_support,
+                 max_var_uu, chunk, outputs) -> None:
+    """Per-pixel masked quadratic fits for the pixels in ``masked``, written into ``outputs`` in place, in
+    batched numpy (the reference of :func:`.kernels.masked_fits`).
 
     The angle between the centre ray and a neighbour's ray is taken as the pixel distance times the
     image's median adjacent-ray angle (exact enough for the jump allowance, and it avoids gathering rays).

@@ -8,7 +8,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.ndimage as ndi
 
-from .derivatives import clean_windows, jump_pairs, ray_angles, savgol_kernels
+from . import kernels
+from .derivatives import clean_windows, jump_pairs, savgol_kernels
 from .grid import _Grid
 from .types import EdgeType, SegmentationParams
 
@@ -18,28 +19,38 @@ def _image_grid(points: np.ndarray, sigma: np.ndarray,
     """The full-resolution grid of checked inputs: returns, floored sigma, rays, jump pairs, with the sigma
     scaled by the measured noise (``calibrate_noise``); ``(grid, declared sigma (H, W), noise scale or None)``,
     or None for an image without returns."""
-    pts, sig = points, sigma
-    # finite and > 0 where every coordinate is finite and one is not 0 (a range beyond 1e154 m, whose square
-    # overflows, counts as no return)
-    r2 = np.einsum("ijk,ijk->ij", pts, pts)
-    valid = np.isfinite(r2) & (r2 > 0) & np.isfinite(sig)
+    valid, pts, sig, rng, rays = checked_returns(points, sigma, params.sigma_floor_m)
     if not valid.any():
         return None
-    sig = np.where(valid, np.maximum(sig, params.sigma_floor_m), np.nan)
-    pts = np.where(valid[..., None], pts, np.nan)
-    rng = np.where(valid, np.sqrt(r2), np.nan)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rays = pts / rng[..., None]
     declared = sig
     scale = None
-    angles = ray_angles(rays)
-    jump_h, jump_v = jump_pairs(rng, sig, rays, params.jump_k, params.jump_tan, angles)
+    jump_h, jump_v = jump_pairs(rng, sig, rays, params.jump_k, params.jump_tan)
     if params.calibrate_noise:
         scale = noise_scale(rng, sig, valid, jump_h, jump_v, params.window, params.max_noise_scale,
                             params.noise_block)
         sig = sig * scale
-        jump_h, jump_v = jump_pairs(rng, sig, rays, params.jump_k, params.jump_tan, angles)
+        jump_h, jump_v = jump_pairs(rng, sig, rays, params.jump_k, params.jump_tan)
     return _Grid(pts, sig, valid, rng, rays, jump_h, jump_v), declared, scale
+
+
+def checked_returns(points: np.ndarray, sigma: np.ndarray, sigma_floor: float):
+    """``(valid (H, W), points (H, W, 3), sigma floored at sigma_floor (H, W), range (H, W), unit rays
+    (H, W, 3))`` of checked inputs, NaN where there is no return: a return where every coordinate is finite
+    and one is not 0 (a range beyond 1e154 m, whose square overflows, counts as none) and sigma is finite.
+    The compiled :func:`.kernels.checked_returns`; :func:`checked_returns_reference` is the same in numpy."""
+    return kernels.checked_returns(np.asarray(points, np.float64), np.asarray(sigma, np.float64), float(sigma_floor))
+
+
+def checked_returns_reference(points: np.ndarray, sigma: np.ndarray, sigma_floor: float):
+    """:func:`checked_returns` in numpy (its reference)."""
+    r2 = np.einsum("ijk,ijk->ij", points, points)
+    valid = np.isfinite(r2) & (r2 > 0) & np.isfinite(sigma)
+    sig = np.where(valid, np.maximum(sigma, sigma_floor), np.nan)
+    pts = np.where(valid[..., None], points, np.nan)
+    rng = np.where(valid, np.sqrt(r2), np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rays = pts / rng[..., None]
+    return valid, pts, sig, rng, rays
 
 
 def noise_scale(rng: np.ndarray, sigma: np.ndarray, valid: np.ndarray, jump_h: np.ndarray, jump_v: np.ndarray,

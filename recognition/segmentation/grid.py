@@ -10,6 +10,7 @@ import scipy.ndimage as ndi
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from . import kernels
 from .derivatives import jump_pairs
 from .types import SegmentationParams
 
@@ -62,7 +63,18 @@ class _State:
 
 
 def _groups(labels: np.ndarray) -> dict[int, np.ndarray]:
-    """Flat pixel indices of each label >= 0 (increasing)."""
+    """Flat pixel indices of each label >= 0 (increasing), by counting (:func:`.kernels.group_order`; the
+    reference is :func:`_groups_reference`)."""
+    flat = labels.ravel()
+    if flat.size == 0 or flat.max() < 0:
+        return {}
+    order, starts, counts = kernels.group_order(flat.astype(np.int64), int(flat.max()) + 1)
+    return {k: order[s:s + c] for k, s, c in zip(np.flatnonzero(counts).tolist(), starts[counts > 0].tolist(),
+                                                  counts[counts > 0].tolist(), strict=True)}
+
+
+def _groups_reference(labels: np.ndarray) -> dict[int, np.ndarray]:
+    """:func:`_groups` by ``scipy.ndimage.value_indices``."""
     flat = labels.ravel()
     if flat.size == 0 or flat.max() < 0:
         return {}
@@ -78,6 +90,16 @@ def _subsample(idx: np.ndarray, n_max: int) -> np.ndarray:
 
 def _rms(z: np.ndarray) -> float:
     return float(np.sqrt(z @ z / z.size)) if z.size else float("inf")
+
+
+def _planar_groups(groups: list[np.ndarray], hk: np.ndarray) -> np.ndarray:
+    """(G,) bool: :func:`_is_planar_counts` of each group's curvature classes ``hk`` (flat, 0..4), in one count."""
+    if not groups:
+        return np.zeros(0, bool)
+    sizes = np.fromiter((g.size for g in groups), np.int64, len(groups))
+    gid = np.repeat(np.arange(len(groups)), sizes)
+    c = np.bincount(gid * 5 + hk[np.concatenate(groups)], minlength=5 * len(groups)).reshape(-1, 5)
+    return c[:, 1] >= c[:, 1:].max(axis=1)
 
 
 def _is_planar_counts(counts: np.ndarray) -> bool:

@@ -6,8 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import kernels
 from .grid import _groups, _link_components, _State
-from .quick_fits import _fit_groups, _pixel_residuals
+from .quick_fits import _fit_groups, _ray_z
 from .seeds import _split_bad_seeds
 from .types import SegmentationParams
 
@@ -50,7 +51,20 @@ def _grow_patches(seeds: np.ndarray, st: _State, params: SegmentationParams, val
 
 
 def _grow(labels: np.ndarray, P: np.ndarray, st: _State, links, max_iter: int, thr: float) -> None:
-    """Grow labelled patches into unlabelled valid pixels whose residual fits (in place)."""
+    """Grow labelled patches into unlabelled valid pixels whose residual fits (in place): the compiled
+    :func:`.kernels.grow`, round for round :func:`_grow_reference`."""
+    H, W = labels.shape
+    flat = labels.reshape(-1).astype(np.int64)
+    steps = np.array([dr * W + dc for dr, dc, _ in links], np.int64)
+    link_ok = np.stack([ok.ravel() for _, _, ok in links])
+    kernels.grow(flat, np.ascontiguousarray(P, np.float64), st.X, st.U, st.S, steps, link_ok, H, W, max_iter,
+                 float(thr))
+    labels[...] = flat.reshape(H, W)
+
+
+def _grow_reference(labels: np.ndarray, P: np.ndarray, st: _State, links, max_iter: int, thr: float) -> None:
+    """Grow labelled patches into unlabelled valid pixels whose residual fits (in place); numpy, the reference
+    of :func:`.kernels.grow`."""
     H, W = labels.shape
     flat = labels.ravel()
     cand = np.flatnonzero((flat < 0) & np.isfinite(st.S))
@@ -81,7 +95,7 @@ def _grow(labels: np.ndarray, P: np.ndarray, st: _State, links, max_iter: int, t
             m = nl[k] >= 0
             if m.any():
                 sel = fi[m]
-                z[k, m] = _pixel_residuals(P, nl[k, m], x[sel], u[sel], s[sel])
+                z[k, m] = _ray_z(P.T.take(nl[k, m], axis=1), x[sel].T.copy(), u[sel], s[sel])
         best = np.argmin(z, axis=0)
         acc = z[best, np.arange(fi.size)] <= thr
         if not acc.any():

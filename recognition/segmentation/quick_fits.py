@@ -23,8 +23,9 @@ from recognition.fitting import (
     taubin_fit,
 )
 
+from . import kernels
 from .derivatives import norm3
-from .grid import _is_planar_counts, _rms, _State, _subsample
+from .grid import _planar_groups, _rms, _State, _subsample
 from .types import SegmentationParams
 
 #: below this, the second-smallest eigenvalue of a group's normalised monomial moments (``M / trace M``) says
@@ -204,8 +205,25 @@ def _quadric_fits(X, U, S, gid, starts, cnt):
 def _quick_fits(idx_list: list[np.ndarray], planar: np.ndarray, st: _State):
     """:func:`_quick_fit` of many groups (flat pixel indices each): parameters (G, 10), per-group z arrays.
 
-    Groups of fewer than 10 points get planes, as in :func:`_quick_fit`.
+    Groups of fewer than 10 points get planes, as in :func:`_quick_fit`. The compiled
+    :func:`.kernels.quick_fits` (one pass over each group's points for its moments, then the same solution as
+    :func:`_quadric_fits`); :func:`_quick_fits_reference` is the batched numpy of the same fits.
     """
+    G = len(idx_list)
+    cnt = np.fromiter((len(i) for i in idx_list), np.int64, G)
+    starts = np.zeros(G, np.int64)
+    np.cumsum(cnt[:-1], out=starts[1:])
+    ix = np.concatenate(idx_list).astype(np.int64, copy=False) if G else np.zeros(0, np.int64)
+    P, z, singular = kernels.quick_fits(st.X, st.U, st.S, ix, starts, cnt, np.asarray(planar, np.bool_),
+                                        _TAUBIN_MAP, UNDETERMINED_QUADRIC)
+    for k in np.flatnonzero(singular):  # a numerically singular Taubin system: the one-by-one fit's fallback
+        i = idx_list[k]
+        P[k], z[starts[k]:starts[k] + cnt[k]] = _quick_fit(st.X[i], st.U[i], st.S[i], False)
+    return P, np.split(z, starts[1:]) if G else []
+
+
+def _quick_fits_reference(idx_list: list[np.ndarray], planar: np.ndarray, st: _State):
+    """:func:`_quick_fits` in batched numpy (its reference): parameters (G, 10), per-group z arrays."""
     G = len(idx_list)
     P = np.full((G, 10), np.nan)
     zs: list[np.ndarray] = [np.zeros(0)] * G
@@ -237,7 +255,7 @@ def _quick_fits_of(groups: dict[int, np.ndarray], keys: list[int], st: _State,
     """The quick fit (plane or quadric by the patch's H-K classes, on a subsample) of each patch ``keys`` of
     ``groups``, in one batch: ``{label: parameters (10,)}``."""
     P, _ = _quick_fits([_subsample(groups[k], params.max_fit_points) for k in keys],
-                       np.array([_is_planar_counts(np.bincount(st.hk[groups[k]], minlength=5)) for k in keys]), st)
+                       _planar_groups([groups[k] for k in keys], st.hk), st)
     return dict(zip(keys, P, strict=True))
 
 
@@ -264,7 +282,7 @@ def _fit_groups(groups: dict[int, np.ndarray], st: _State, params: SegmentationP
         return P
     labs = list(groups)
     subs = [_subsample(groups[k], params.max_fit_points) for k in labs]
-    planar = np.array([_is_planar_counts(np.bincount(st.hk[groups[k]], minlength=5)) for k in labs])
+    planar = _planar_groups([groups[k] for k in labs], st.hk)
     Pg, zs = _quick_fits(subs, planar, st)
     # not a plane after all: curvature undefined (thin pipes: every window crosses a jump) or within its
     # noise (a pipe seen close up by a fine-grained sensor, whose windows span a few mm)
@@ -295,8 +313,12 @@ def _fit_groups(groups: dict[int, np.ndarray], st: _State, params: SegmentationP
 
 
 def _pixel_residuals(P: np.ndarray, lab: np.ndarray, X: np.ndarray, U: np.ndarray, S: np.ndarray) -> np.ndarray:
-    """|range residual| in sigma of points X (N, 3) to the surfaces P[lab] (per point), as in _quick_fit."""
-    return _ray_z(P.T.take(lab, axis=1), X.T.copy(), U, S)
+    """|range residual| in sigma of points X (N, 3) to the surfaces P[lab] (per point), as in _quick_fit: the
+    compiled :func:`.kernels.ray_z_by_label`, equal to ``_ray_z(P.T.take(lab, axis=1), X.T.copy(), U, S)``."""
+    f64 = np.float64
+    return kernels.ray_z_by_label(np.ascontiguousarray(P, f64), np.ascontiguousarray(lab, np.int64),
+                                  np.ascontiguousarray(X, f64), np.ascontiguousarray(U, f64),
+                                  np.ascontiguousarray(S, f64))
 
 
 def _ray_z(p: np.ndarray, x: np.ndarray, U: np.ndarray, S: np.ndarray, f: np.ndarray | None = None) -> np.ndarray:

@@ -91,3 +91,40 @@ def test_a_worker_without_a_segmenter_says_where_it_looked(tmp_path):
     (tmp_path / "recognition" / "segmentation.py").write_text("def other(points, sigma):\n    pass\n")
     with pytest.raises(WorkerError, match=r"no segmenter in .*recognition\.segmentation\.segment"):
         _ = _Worker(tmp_path, "fake").ready
+
+
+def _run_json(commit: str, rev: str, ratios: list[float]) -> dict:
+    frames = [{"ratio": r, "cpu_s": r, "cpu_s_against": 1.0} for r in ratios]
+    groups = {"mockup/mockup_laser": {"n": len(ratios), "cpu_median_s": 0.25, "cpu_median_s_against": 0.5,
+                                      "ratio_of_medians": 0.5, "identical_labels": len(ratios)},
+              "all": {"n": len(ratios), "cpu_median_s": 0.25, "cpu_median_s_against": 0.5, "ratio_of_medians": 0.5,
+                      "identical_labels": len(ratios) - 1}}
+    return {"suite": "default", "commit": commit, "against": {
+        "rev": rev, "commit": "b" * 40, "repeat": 1, "labels_sha1": "c" * 40, "labels_sha1_against": "d" * 40,
+        "groups": groups, "frames": frames}}
+
+
+def test_against_tables_render_from_json_into_a_markdown_block(tmp_path, capsys):
+    from harness.bench.segmentation import BEGIN, END, against_markdown
+
+    run = _run_json("a" * 40, "0b5908a", [0.4, 0.5, 0.6])
+    block = against_markdown([run])
+    assert "This tree `aaaaaaaaaaaa` against `bbbbbbbbbbbb` (`0b5908a`), suite `default`: 3 frames" in block
+    assert "per-frame ratios median 0.50" in block
+    assert "| `mockup/mockup_laser` | 3 | 0.250 | 0.500 | 0.50 | 3 / 3 |" in block
+    assert "| all | 3 | 0.250 | 0.500 | 0.50 | 2 / 3 |" in block
+    src = tmp_path / "run.json"
+    src.write_text(json.dumps(run))
+    doc = tmp_path / "doc.md"
+    doc.write_text(f"before\n{BEGIN}\nold\n{END}\nafter\n")
+    assert main(["--from", str(src), "--into", str(doc)]) == 0
+    assert doc.read_text() == f"before\n{BEGIN}\n{block}{END}\nafter\n"
+    # bad input: one line naming the file, and a non-zero exit
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"suite": "default"}))
+    assert main(["--from", str(bad)]) == 2
+    assert "bad.json: no 'against' and 'commit' fields" in capsys.readouterr().err
+    (tmp_path / "plain.md").write_text("no markers\n")
+    assert main(["--from", str(src), "--into", str(tmp_path / "plain.md")]) == 2
+    assert "plain.md: no generated block" in capsys.readouterr().err
+

@@ -1,0 +1,267 @@
+"""The compiled kernels of the segmentation (recognition.segmentation.kernels) against their numpy references,
+on random inputs: fast path == slow reference.
+
+The kernels do the references' arithmetic operation by operation; floats are compared to 1e-15 relative, not
+bit for bit, since numpy's own summation order of a 3-vector depends on its SIMD path
+(``python -m harness.bench.stability``); labels and flags, which follow from them, are compared exactly on
+inputs where no value sits within rounding of a threshold.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.ndimage as ndi
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from recognition.segmentation import kernels
+from recognition.segmentation.curvature import curvatures_reference
+from recognition.segmentation.derivatives import jump_pairs, jump_pairs_reference, quadratic_derivatives
+from recognition.segmentation.grid import _groups, _groups_reference, _neighbour_links, _State
+from recognition.segmentation.growing import _grow, _grow_reference
+from recognition.segmentation.quick_fits import _pixel_residuals, _ray_z
+
+SEEDS = st.integers(0, 2**31 - 1)
+
+
+def _close(a: np.ndarray, b: np.ndarray) -> None:
+    """Equal to 1e-15 relative (and NaN / inf where the other has them)."""
+    np.testing.assert_allclose(a, b, rtol=1e-15, atol=0.0, equal_nan=True)
+
+
+def _wavy_image(seed: int, h: int, w: int, holes: float, step: float):
+    """A perspective point image of a wavy surface with steps (jumps) and holes: points (h, w, 3), sigma (h, w)."""
+    gen = np.random.default_rng(seed)
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    rays = np.stack([(u - w / 2) / (1.2 * w), (v - h / 2) / (1.2 * w), np.ones((h, w))], -1)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    r = 2.0 + 0.1 * np.sin(u / 5.0 + gen.uniform(0, 6)) * np.cos(v / 7.0) + step * (u > gen.integers(1, w - 1))
+    r = r + gen.normal(0.0, 1e-3, (h, w))
+    pts = rays * r[..., None]
+    sigma = np.full((h, w), 1e-3) * gen.uniform(0.5, 2.0, (h, w))
+    hole = gen.random((h, w)) < holes
+    pts[hole] = np.nan
+    sigma[hole] = np.nan
+    return pts, sigma
+
+
+@given(SEEDS, st.integers(1, 30))
+@settings(max_examples=40, deadline=None)
+def test_ray_z_by_label_equals_ray_z(seed, n_quadrics):
+    gen = np.random.default_rng(seed)
+    n = int(gen.integers(0, 200))
+    P = gen.normal(size=(n_quadrics, 10))
+    P[gen.random(n_quadrics) < 0.2] = np.nan  # a patch without a fit
+    P[gen.random(n_quadrics) < 0.2, :9] = 0.0  # a constant: no gradient, undefined residual
+    lab = gen.integers(0, n_quadrics, n)
+    X = gen.normal(size=(n, 3))
+    U = gen.normal(size=(n, 3))
+    U /= np.linalg.norm(U, axis=1, keepdims=True)
+    S = gen.uniform(0.0, 0.01, n)
+    S[gen.random(n) < 0.1] = np.nan
+    got = _pixel_residuals(P, lab, X, U, S)
+    want = _ray_z(P.T.take(lab, axis=1), X.T.copy(), U, S)
+    assert got.shape == (n,) and np.all(got >= 0)
+    _close(got, want)
+
+
+@given(st.lists(st.integers(-1, 12), min_size=0, max_size=300), st.integers(1, 40))
+@settings(max_examples=60, deadline=None)
+def test_groups_equal_value_indices(values, width):
+    labels = np.array(values + [-1] * (-len(values) % width), np.int32).reshape(-1, width)
+    got, want = _groups(labels), _groups_reference(labels)
+    assert list(got) == list(want)
+    for k in want:
+        np.testing.assert_array_equal(got[k], want[k])
+
+
+@given(SEEDS, st.floats(0.0, 0.3), st.floats(0.0, 0.5))
+@settings(max_examples=30, deadline=None)
+def test_jump_pairs_equal_the_reference(seed, holes, step):
+    pts, sigma = _wavy_image(seed, 23, 31, holes, step)
+    rng = np.linalg.norm(pts, axis=-1)
+    rays = pts / rng[..., None]
+    got = jump_pairs(rng, sigma, rays, 3.0, 2.0)
+    want = jump_pairs_reference(rng, sigma, rays, 3.0, 2.0)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, w)
+    assert want[0].any() or step < 0.01 or holes > 0  # the steps are found
+
+
+@given(SEEDS, st.floats(0.0, 0.2))
+@settings(max_examples=20, deadline=None)
+def test_curvatures_equal_the_reference(seed, holes):
+    pts, sigma = _wavy_image(seed, 21, 27, holes, 0.2)
+    der = quadratic_derivatives(pts, sigma, 5, 3.0, 2.0)
+    got = kernels.curvatures(pts, sigma, der.Pu, der.Pv, der.Puu, der.Puv, der.Pvv, der.var_u, der.var_v,
+                             der.cov2)
+    want = curvatures_reference(pts, sigma, der)
+    assert np.isfinite(want.H).sum() > 100
+    for g, w in zip(got, (want.H, want.K, want.sigma_H, want.sigma_K, want.normals, want.sigma_normal),
+                    strict=True):
+        _close(g, w)
+
+
+@given(SEEDS, st.integers(1, 12), st.floats(0.5, 60.0), st.integers(1, 40))
+@settings(max_examples=40, deadline=None)
+def test_grow_equals_the_reference(seed, n_seeds, thr, max_iter):
+    pts, sigma = _wavy_image(seed, 19, 25, 0.05, 0.3)
+    gen = np.random.default_rng(seed)
+    valid = np.isfinite(sigma)
+    rng = np.linalg.norm(pts, axis=-1)
+    rays = pts / rng[..., None]
+    jump_h, jump_v = jump_pairs(rng, sigma, rays, 3.0, 2.0)
+    links = _neighbour_links(valid.shape, valid, jump_h, jump_v)
+    st_ = _State(X=pts.reshape(-1, 3), U=rays.reshape(-1, 3), S=sigma.ravel(), hk=np.ones(valid.size, np.int64))
+    labels = np.full(valid.shape, -1, np.int32)
+    for k in range(n_seeds):  # small square seeds, some overlapping holes
+        r, c = gen.integers(0, 17), gen.integers(0, 23)
+        labels[r:r + 2, c:c + 2] = np.where(valid[r:r + 2, c:c + 2], k, -1)
+    # planes through the middle of each seed, perturbed: some pixels fit, some do not
+    P = np.zeros((n_seeds, 10))
+    P[:, 6:9] = gen.normal(0.0, 0.05, (n_seeds, 3)) + [0.0, 0.0, 1.0]
+    P[:, 9] = -gen.uniform(1.8, 2.3, n_seeds)
+    got, want = labels.copy(), labels.copy()
+    _grow(got, P, st_, links, max_iter, thr)
+    _grow_reference(want, P, st_, links, max_iter, thr)
+    np.testing.assert_array_equal(got, want)
+
+
+def test_grow_fills_a_plane_and_stops_at_a_jump():
+    """A closed case: a fronto-parallel plane at 2 m with a step of 0.5 m half-way; one seed on each side
+    grows over its own side only."""
+    h, w = 10, 12
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    rays = np.stack([(u - w / 2) / 20, (v - h / 2) / 20, np.ones((h, w))], -1)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    z = np.where(u < 6, 2.0, 2.5)
+    pts = rays * (z / rays[..., 2])[..., None]
+    sigma = np.full((h, w), 1e-3)
+    valid = np.ones((h, w), bool)
+    rng = np.linalg.norm(pts, axis=-1)
+    jump_h, jump_v = jump_pairs(rng, sigma, rays, 3.0, 2.0)
+    assert jump_h[:, 5].all() and jump_h.sum() == h  # the step, and nothing else
+    links = _neighbour_links(valid.shape, valid, jump_h, jump_v)
+    st_ = _State(X=pts.reshape(-1, 3), U=rays.reshape(-1, 3), S=sigma.ravel(), hk=np.ones(h * w, np.int64))
+    labels = np.full((h, w), -1, np.int32)
+    labels[4, 2], labels[4, 9] = 0, 1
+    P = np.zeros((2, 10))
+    P[:, 8], P[0, 9], P[1, 9] = 1.0, -2.0, -2.5  # z = 2 and z = 2.5
+    _grow(labels, P, st_, links, 100, 3.0)
+    np.testing.assert_array_equal(labels, np.where(u < 6, 0, 1))
+    # the groups of the result, by both paths
+    assert {k: v.size for k, v in _groups(labels).items()} == {0: 60, 1: 60}
+    assert ndi.label(labels == 0)[1] == 1
+
+
+def _surface_groups(seed: int, n_groups: int):
+    """Groups of noisy points on random spheres, cylinders and planes seen from the origin, some tiny, one a
+    strip one pixel wide (points that determine no quadric), as the segmentation's fits see them."""
+    gen = np.random.default_rng(seed)
+    X, groups = [], []
+    for g in range(n_groups):
+        n = int(gen.choice([2, 5, 12, 40, 300]))
+        kind = g % 4
+        uv = gen.uniform(-0.3, 0.3, (n, 2))
+        if kind == 3:
+            uv[:, 1] = 0.0  # a strip: every point in one plane through the sensor
+        r = gen.uniform(0.1, 1.0)
+        if kind == 0:  # sphere cap
+            p = np.stack([r * np.sin(uv[:, 0]), r * np.sin(uv[:, 1]), -r * np.cos(uv[:, 0]) * np.cos(uv[:, 1])], 1)
+        elif kind == 1:  # cylinder piece
+            p = np.stack([r * np.sin(uv[:, 0]), uv[:, 1], -r * np.cos(uv[:, 0])], 1)
+        else:  # plane
+            p = np.stack([uv[:, 0], uv[:, 1], 0.2 * uv[:, 0]], 1)
+        p = p + [0.0, 0.0, gen.uniform(2.0, 4.0)] + gen.normal(0.0, 1e-3, (n, 3))
+        groups.append(np.arange(len(X) and sum(map(len, X)), sum(map(len, X)) + n))
+        X.append(p)
+    X = np.concatenate(X)
+    U = X / np.linalg.norm(X, axis=1, keepdims=True)
+    S = np.full(len(X), 1e-3)
+    return _State(X=X, U=U, S=S, hk=np.ones(len(X), np.int64)), groups, gen.random(n_groups) < 0.3
+
+
+@given(SEEDS, st.integers(1, 12))
+@settings(max_examples=40, deadline=None)
+def test_quick_fits_equal_the_batched_reference(seed, n_groups):
+    """The compiled fits against the batched numpy ones: the same surfaces (up to the sign an eigenvector
+    takes) and residuals, to the rounding of moments summed in another order."""
+    from recognition.segmentation.quick_fits import _quick_fits, _quick_fits_reference
+
+    st_, groups, planar = _surface_groups(seed, n_groups)
+    P, zs = _quick_fits(groups, planar, st_)
+    Pr, zr = _quick_fits_reference(groups, planar, st_)
+    assert P.shape == Pr.shape == (n_groups, 10)
+    for g in range(n_groups):
+        if np.isnan(Pr[g]).all():
+            assert np.isnan(P[g]).all() and np.isinf(zs[g]).all()
+            continue
+        sign = np.sign(P[g] @ Pr[g])
+        np.testing.assert_allclose(sign * P[g], Pr[g], rtol=1e-6, atol=1e-8)
+        np.testing.assert_allclose(zs[g], zr[g], rtol=1e-5, atol=1e-6)  # (grazing points: 1e-6 seen)
+
+
+@given(SEEDS, st.floats(0.0, 0.3), st.sampled_from([5, 7]))
+@settings(max_examples=25, deadline=None)
+def test_masked_fits_equal_the_reference(seed, holes, window):
+    from recognition.segmentation.derivatives import _masked_fits, _masked_fits_reference
+
+    pts, sigma = _wavy_image(seed, 17, 23, holes, 0.3)
+    valid = np.isfinite(pts).all(axis=-1) & np.isfinite(sigma)
+    rng = np.linalg.norm(pts, axis=-1)
+    rays = pts / rng[..., None]
+    masked = valid.copy()
+
+    def outputs():
+        return tuple(np.full(shape, np.nan) for shape in [(17, 23, 3)] * 5 + [(17, 23)] * 2 + [(17, 23, 6)])
+
+    got, want = outputs(), outputs()
+    args = (pts, sigma, rng, rays, valid, masked, window, 3.0, 2.0, max(9, window * window // 3), 1e3)
+    _masked_fits(*args, 64, got)
+    _masked_fits_reference(*args, 64, want)
+    assert np.isfinite(want[0]).any()
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-9, atol=1e-12, equal_nan=True)
+
+
+@given(SEEDS, st.floats(0.0, 0.5))
+@settings(max_examples=25, deadline=None)
+def test_checked_returns_equal_the_reference(seed, holes):
+    from recognition.segmentation.edges import checked_returns, checked_returns_reference
+
+    pts, sigma = _wavy_image(seed, 9, 13, holes, 0.3)
+    gen = np.random.default_rng(seed)
+    pts[gen.random((9, 13)) < 0.1] = 0.0  # no range
+    pts[0, 0] = [1e160, 0.0, 0.0]  # its square overflows: no return
+    sigma[gen.random((9, 13)) < 0.1] = 1e-6  # below the floor
+    got = checked_returns(pts, sigma, 1e-4)
+    want = checked_returns_reference(pts, sigma, 1e-4)
+    assert not want[0][0, 0] and np.nanmin(want[2]) >= 1e-4
+    np.testing.assert_array_equal(got[0], want[0])
+    for g, w in zip(got[1:], want[1:], strict=True):
+        _close(g, w)
+
+
+@given(SEEDS, st.sampled_from([3, 5, 7, 9]), st.integers(1, 30), st.integers(1, 30))
+@settings(max_examples=40, deadline=None)
+def test_savgol_derivatives_equal_ndimage(seed, window, h, w):
+    """The separable Savitzky-Golay kernel sums as scipy.ndimage.correlate1d (mode nearest) does: the same
+    bits, on images smaller than the window too."""
+    from recognition.segmentation.derivatives import _full_window_derivatives, _full_window_derivatives_reference
+
+    p = np.random.default_rng(seed).normal(size=(h, w, 3)) * 3.0
+    for g, r in zip(_full_window_derivatives(p, window), _full_window_derivatives_reference(p, window), strict=True):
+        np.testing.assert_array_equal(g, r)
+
+
+@given(st.lists(st.lists(st.integers(0, 4), min_size=0, max_size=30), min_size=0, max_size=12))
+@settings(max_examples=60, deadline=None)
+def test_planar_groups_equal_the_per_group_counts(classes):
+    """The planar test of many groups in one count == group by group (a group of no pixel is planar)."""
+    from recognition.segmentation.grid import _is_planar_counts, _planar_groups
+
+    hk = np.array([c for g in classes for c in g], np.int64)
+    bounds = np.cumsum([0] + [len(g) for g in classes])
+    groups = [np.arange(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    want = [_is_planar_counts(np.bincount(hk[g], minlength=5)) for g in groups]
+    np.testing.assert_array_equal(_planar_groups(groups, hk), np.array(want, bool))
