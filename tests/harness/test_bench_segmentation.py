@@ -128,3 +128,19 @@ def test_against_tables_render_from_json_into_a_markdown_block(tmp_path, capsys)
     assert main(["--from", str(src), "--into", str(tmp_path / "plain.md")]) == 2
     assert "plain.md: no generated block" in capsys.readouterr().err
 
+
+
+#: the --against runs behind docs/performance.md's tables, in the order they are shown
+AGAINST_RUNS = ("segmentation-against-0b5908a.json", "segmentation-against-445e44a.json")
+
+
+def test_performance_doc_holds_the_committed_against_tables():
+    from harness.bench.segmentation import BEGIN, END, against_markdown
+    from reports.generated_blocks import generated_block
+
+    runs = [json.loads((_support.ROOT / "docs" / "results" / name).read_text(encoding="utf-8"))
+            for name in AGAINST_RUNS]
+    text = (_support.ROOT / "docs" / "performance.md").read_text(encoding="utf-8")
+    assert generated_block(text, BEGIN, END) == against_markdown(runs), (
+        "regenerate with `python -m harness.bench_segmentation --from "
+        + " ".join(f"docs/results/{n}" for n in AGAINST_RUNS) + " --into docs/performance.md`")
