@@ -152,25 +152,8 @@ def jump_pairs_reference(
     rng: np.ndarray, sigma: np.ndarray, rays: np.ndarray, k_sigma: float, tan_max_incidence: float,
     angles: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`jump_pairs` in numpy (its reference), from the :func:`ray_angles` when already at hand.
-
-    Parameters
-    ----------
-    rng : ndarray of shape (H, W), metres, NaN where no return
-    sigma : ndarray of shape (H, W), metres
-    rays : ndarray of shape (H, W, 3), unit ray directions (NaN where no return)
-    k_sigma, tan_max_incidence : float
-        See :func:`jump_threshold`.
-    angles : (ndarray, ndarray), optional
-        :func:`ray_angles` of ``rays``, when already at hand.
-
-    Returns
-    -------
-    jump_h : ndarray of shape (H, W - 1), bool
-        True when pixel (i, j) and (i, j + 1) both have returns and are on different sides of a jump.
-    jump_v : ndarray of shape (H - 1, W), bool
-        The same for (i, j) and (i + 1, j).
-    """
+    """:func:`jump_pairs` in numpy (its reference; the same arguments and results), from the :func:`ray_angles`
+    of ``rays`` when ``angles`` holds them."""
     angles = ray_angles(rays) if angles is None else angles
     out = []
     for (sl_a, sl_b), ang in zip((

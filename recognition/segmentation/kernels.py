@@ -312,6 +312,19 @@ def curvatures(points, sigma, Pu, Pv, Puu, Puv, Pvv, var_u, var_v, cov2):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _group_mean(X, ix, lo, hi):
+    """Mean (3 floats) of the points ``X[ix[lo:hi]]``, summed in index order."""
+    m0 = m1 = m2 = 0.0
+    for t in range(lo, hi):
+        i = ix[t]
+        m0 += X[i, 0]
+        m1 += X[i, 1]
+        m2 += X[i, 2]
+    c = hi - lo
+    return m0 / c, m1 / c, m2 / c
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _plane_fit(X, U, S, ix, P, z, g, lo, hi):
     """Total-least-squares plane of the points ``X[ix[lo:hi]]`` into ``P[g]``, their ray residuals (sigma) into
     ``z[lo:hi]``; NaN / inf under 3 points."""
@@ -320,13 +333,7 @@ def _plane_fit(X, U, S, ix, P, z, g, lo, hi):
         P[g, :] = np.nan
         z[lo:hi] = np.inf
         return
-    m0 = m1 = m2 = 0.0
-    for t in range(lo, hi):
-        i = ix[t]
-        m0 += X[i, 0]
-        m1 += X[i, 1]
-        m2 += X[i, 2]
-    m0, m1, m2 = m0 / c, m1 / c, m2 / c
+    m0, m1, m2 = _group_mean(X, ix, lo, hi)
     C = np.zeros((3, 3))
     for t in range(lo, hi):
         i = ix[t]
@@ -364,13 +371,7 @@ def _quadric_fit(X, U, S, ix, P, z, g, lo, hi, taubin_map, undetermined_below):
     ``P[g]`` (metres), their ray residuals (sigma) into ``z[lo:hi]``. Returns 0, or 1 when the points determine
     no quadric (the caller fits a plane), or 2 when the Taubin system is numerically singular."""
     c = hi - lo
-    m0 = m1 = m2 = 0.0
-    for t in range(lo, hi):
-        i = ix[t]
-        m0 += X[i, 0]
-        m1 += X[i, 1]
-        m2 += X[i, 2]
-    m0, m1, m2 = m0 / c, m1 / c, m2 / c
+    m0, m1, m2 = _group_mean(X, ix, lo, hi)
     ss = 0.0
     for t in range(lo, hi):
         i = ix[t]
