@@ -1,11 +1,15 @@
 """Compiled kernels (numba) of the segmentation's per-pixel loops, each the exact equal of a numpy reference.
 
 Issue 35: a frame spent its time in some 126 k small numpy calls (region growing one front at a time, the
-residual of every candidate pixel to every neighbouring patch, pixel groups by label). These kernels do the
+residual of every candidate pixel to every neighbouring patch, pixel groups by label). Most kernels here do the
 same arithmetic in the same order as their references, operation by operation (numba does not contract
-``a * b + c`` into a fused multiply-add without ``fastmath``), so they return the same bits and the
-segmenter's labels stay the same (``labels sha1`` of ``python -m harness.bench_segmentation``). The references
-stay beside them and the tests hold the two equal on random inputs (``tests/recognition/test_kernels.py``).
+``a * b + c`` into a fused multiply-add without ``fastmath``), so they return the same bits. Two sum in another
+order than the BLAS products of their references: the masked quadratic fits (:func:`masked_fits`) and the quick
+fits' moments (:func:`quick_fits`); they agree to the rounding (the tests), and the segmenter's labels stayed the
+same on all 96 ``default`` frames (``labels sha1`` of ``python -m harness.bench_segmentation --against``), but
+the curvature images at masked-window pixels differ in their last bits, and so may a later stage's decision that
+sits on a threshold (one ``full`` trial's not-ok pose changed its reason). The references stay beside the kernels
+and the tests hold the two equal on random inputs (``tests/recognition/test_kernels.py``).
 
 Compiled once per machine: ``cache=True`` keeps the machine code in ``__pycache__``, so a new process (a forked
 trial, a benchmark worker) loads it instead of compiling again; :func:`warm_up` compiles them all at once, on
