@@ -85,7 +85,9 @@ def test_jump_pairs_equal_the_reference(seed, holes, step):
     want = jump_pairs_reference(rng, sigma, rays, 3.0, 2.0)
     for g, w in zip(got, want, strict=True):
         np.testing.assert_array_equal(g, w)
-    assert want[0].any() or step < 0.01 or holes > 0  # the steps are found
+    # the steps are found: a step beyond the smooth-surface allowance (2 x 2.1 m x the 0.027 rad between
+    # neighbouring rays, 0.11 m, plus the noise's) is a jump
+    assert want[0].any() or step < 0.2 or holes > 0
 
 
 @given(SEEDS, st.floats(0.0, 0.2))
