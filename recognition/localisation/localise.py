@@ -437,7 +437,7 @@ def _reinterpretations(description: SceneDescription, res, best, el, pixel_pitch
     """The fully constrained poses of every interpretation of the patches the winner ``best`` matched: the
     interpretation tree run again on those patches alone, with no wildcard, at most ``max_reinterpretations``
     hypotheses (best tree score first); :func:`_twin_outcomes` leaves out the winner's own pose among them.
-    None when there are no twins to screen them with (``max_twins`` 0).
+    Empty when there are no twins to screen them with (``max_twins`` 0).
 
     The main search spends its hypothesis budget on the interpretations of all the patches, so in a bay whose
     corners look alike (a floor and two walls seen away from their ends) the one that puts the sensor in the

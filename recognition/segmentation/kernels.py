@@ -18,6 +18,8 @@ a tiny input, for the callers that time frames.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from numba import njit
 
@@ -46,9 +48,7 @@ def _z_one(P, g, x0, x1, x2, u0, u1, u2, s):
     if gr != gr or floor != floor:  # np.maximum propagates NaN
         return np.inf
     z = abs(f) / (max(gr, floor) * s)
-    if z != z or z == np.inf or z == -np.inf:
-        return np.inf
-    return z
+    return z if np.isfinite(z) else np.inf
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -706,8 +706,10 @@ def savgol_derivatives(points0, box, d1, d2, kinds):
     return Pu, Pv, Puu, Puv, Pvv
 
 
+@functools.cache
 def warm_up() -> None:
-    """Compile (or load from the cache) every kernel on a tiny input, so that no first call is timed."""
+    """Compile (or load from the cache) every kernel on a tiny input, so that no first call is timed; once per
+    process (later calls return at once)."""
     P = np.zeros((1, 10))
     P[0, 8], P[0, 9] = 1.0, -1.0
     X = np.zeros((4, 3))
