@@ -74,17 +74,23 @@ def _row(name: str, st: dict) -> str:
             f"{_rate(st['correct_detection_rate_described'])}")
 
 
-def _print_steps(frames: list[dict]) -> None:
-    """Per step of the segmenter (in the order it runs): median and mean process time over frames, in ms,
-    and its share of the total."""
+def _step_rows(frames: list[dict]) -> list[tuple[str, float, float, float | None]]:
+    """Per step of the segmenter (in the order it runs), then ``total``: median and mean process time over
+    frames in ms, and the step's share of the total (None for the total)."""
     names = list(dict.fromkeys(name for f in frames for name in f["steps_s"]))
     times = np.array([[f["steps_s"].get(name, 0.0) for name in names] for f in frames]) * 1e3
     total = times.sum()
+    rows = [(name, float(np.median(col)), float(col.mean()), float(col.sum() / total))
+            for name, col in zip(names, times.T, strict=True)]
+    return rows + [("total", float(np.median(times.sum(axis=1))), float(times.sum(axis=1).mean()), None)]
+
+
+def _print_steps(frames: list[dict]) -> None:
+    """The :func:`_step_rows` of the frames, printed."""
     print("\nsegmenter steps, process time per frame (ms)")
     print(f"{'step':32s} {'median':>7s} {'mean':>7s} {'share':>6s}")
-    for name, col in zip(names, times.T, strict=True):
-        print(f"{name:32s} {np.median(col):7.1f} {col.mean():7.1f} {col.sum() / total:6.1%}")
-    print(f"{'total':32s} {np.median(times.sum(axis=1)):7.1f} {times.sum(axis=1).mean():7.1f}")
+    for name, median, mean, share in _step_rows(frames):
+        print(f"{name:32s} {median:7.1f} {mean:7.1f}" + ("" if share is None else f" {share:6.1%}"))
 
 
 def _labels_sha1(labels: np.ndarray) -> bytes:
@@ -322,7 +328,8 @@ def _print_against(result: dict) -> None:
 def against_markdown(runs: list[dict]) -> str:
     """The ``--against`` tables of runs written by ``--json`` (each a dict with ``commit`` and ``against``): per
     group, both medians of the process time per frame, their ratio, the spread of the per-frame ratios and the
-    frames whose labels are identical, under a line naming both commits and both label hashes."""
+    frames whose labels are identical, under a line naming both commits and both label hashes; for a run made
+    with ``--steps``, the time of each step of this tree's segmenter (:func:`_step_rows`) after it."""
     out = []
     for run in runs:
         a = run["against"]
@@ -342,6 +349,12 @@ def against_markdown(runs: list[dict]) -> str:
             out.append(f"| {name} | {g['n']} | {g['cpu_median_s']:.3f} | {g['cpu_median_s_against']:.3f} | {ratio} | "
                        f"{g['identical_labels']} / {g['n']} |")
         out.append("")
+        if all("steps_s" in f for f in run.get("frames", ())) and run.get("frames"):
+            out += [f"This tree's segmenter by step (`--steps`, in this tree's own process), ms per frame over the "
+                    f"{len(run['frames'])} frames:", "", "| step | median | mean | share |", "|---|---|---|---|"]
+            out += [f"| {name} | {median:.1f} | {mean:.1f} | {'' if share is None else f'{share:.1%}'} |"
+                    for name, median, mean, share in _step_rows(run["frames"])]
+            out.append("")
     return "\n".join(out)
 
 

@@ -113,6 +113,11 @@ def test_against_tables_render_from_json_into_a_markdown_block(tmp_path, capsys)
     assert "per-frame ratios median 0.50" in block
     assert "| `mockup/mockup_laser` | 3 | 0.250 | 0.500 | 0.50 | 3 / 3 |" in block
     assert "| all | 3 | 0.250 | 0.500 | 0.50 | 2 / 3 |" in block
+    assert "by step" not in block  # a run without --steps has no step table
+    steps = {**run, "frames": [{"steps_s": {"edges": 0.01, "merging": 0.03}},
+                               {"steps_s": {"edges": 0.03, "merging": 0.01}}]}
+    assert "| edges | 20.0 | 20.0 | 50.0% |\n| merging | 20.0 | 20.0 | 50.0% |\n| total | 40.0 | 40.0 |  |" in \
+        against_markdown([steps])
     src = tmp_path / "run.json"
     src.write_text(json.dumps(run))
     doc = tmp_path / "doc.md"
