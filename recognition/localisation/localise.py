@@ -104,6 +104,11 @@ class LocaliseParams:
         model any one of them may have moved, and a pose that rests on it alone is as wrong as it. A move is
         seen against the rest of the view in the directions the rest fixes, and goes unseen in the others: with
         most of the pose resting on one object, nothing would show it had moved. 6: no such check.
+    disagree_fraction : the patches of which fewer than this fraction of pixels agree with the final pose are
+        registered on their own (:func:`_disagreeing_alternative`): the pose they ask for is an alternative that
+        the final pose must be separated from. 0: no such alternative.
+    disagree_reach : ... by an ICP whose first correspondences reach this fraction of the median range (the held
+        poses are a few percent of the range off, beyond the final ICP's first reach, ``icp.max_corr_rel``).
 
     Every field's unit and where its value was chosen: :func:`recognition.tuning.tuned` (``docs/tuning.md``).
     """
@@ -163,8 +168,15 @@ class LocaliseParams:
         3, unit="DOF", chosen="calibration at 445e44a: the ok-but-wrong poses that rested on one object left 6, 6 "
         "and 1 DOF free without it, the right ones 1-3 (0: all 12 Kinect-like ok poses lost, 9 of them right); "
         "3: the rest of the view fixes at least half of the pose")
+    disagree_fraction: float = tuned(
+        0.5, unit="fraction", chosen="not tuned: a patch mostly unexplained by the pose (under half its pixels agree)")
+    disagree_reach: float = tuned(
+        0.1, unit="fraction of range", chosen="not tuned: five times the materially different distance (2 %)")
 
     def __post_init__(self):
+        if not 0 <= self.disagree_fraction <= 1 or self.disagree_reach <= 0:
+            raise ValueError(f"disagree_fraction must be in [0, 1] and disagree_reach > 0, got "
+                             f"{self.disagree_fraction}, {self.disagree_reach}")
         if self.max_twins < 0 or self.max_twin_candidates < 0 or self.max_reinterpretations < 0:
             raise ValueError(f"max_twins, max_twin_candidates and max_reinterpretations must be >= 0, got "
                              f"{self.max_twins}, {self.max_twin_candidates}, {self.max_reinterpretations}")
@@ -313,9 +325,11 @@ def _close(A: np.ndarray, B: np.ndarray, scale: float, angle_deg: float, rel: fl
 
 
 def agreement_separation(description: SceneDescription, fractions_a: dict[int, float],
-                         fractions_b: dict[int, float], leave_out: int = 0) -> tuple[float, float]:
+                         fractions_b: dict[int, float], leave_out: int = 0, leave_out_b: int = 0
+                         ) -> tuple[float, float]:
     """How far the data prefer pose A to pose B: ``(d, se)``, the difference of their agreements over the
-    patches both score and its standard error, after leaving out the ``leave_out`` patches that favour A most.
+    patches both score and its standard error, after leaving out the ``leave_out`` patches that favour A most
+    (and the ``leave_out_b`` that favour B most).
 
     ``d`` is the ``log(pixels)``-weighted mean of the per-patch differences ``f_A - f_B`` (the weights of
     :func:`recognition.localisation.agreement`); the patches are the independent units (neighbouring pixels of
@@ -331,12 +345,18 @@ def agreement_separation(description: SceneDescription, fractions_a: dict[int, f
         lower patch id first); leaving out such a patch never raises ``d``. A preference that one patch carries
         may be a change, not the pose: an altered pipe that the wrong pose fits, a moved cabinet where the wrong
         pose puts its twin.
+    leave_out_b : the same for the patches with the smallest ``f_A - f_B`` (ties: the larger, then the lower patch
+        id first); leaving out such a patch never lowers ``d``. For an alternative built from the patches that
+        favour it (:func:`_disagreeing_alternative`).
     """
     size = {p.id: p.n_pixels for p in description.patches}
     common = sorted(set(fractions_a) & set(fractions_b))
     if leave_out > 0 and common:
         favour = sorted(common, key=lambda k: (-(fractions_a[k] - fractions_b[k]), -size[k], k))
         common = sorted(favour[leave_out:])
+    if leave_out_b > 0 and common:
+        favour_b = sorted(common, key=lambda k: (fractions_a[k] - fractions_b[k], -size[k], k))
+        common = sorted(favour_b[leave_out_b:])
     if len(common) < 2:
         return 0.0, math.inf
     w = np.array([math.log(size[k]) for k in common])
@@ -519,6 +539,49 @@ def _start_alternative(description: SceneDescription, scan: Scan, model_simulato
         *agreement_separation(description, f_final, f_start, params.separation_leave_out)))
 
 
+def _disagreeing_alternative(description: SceneDescription, scan: Scan, model: SceneModel, model_simulator,
+                             T_final: np.ndarray, params: LocaliseParams, timing: dict[str, float], scale: float
+                             ) -> PoseAlternative | None:
+    """The pose that the patches the final pose leaves unexplained ask for, as an alternative to it.
+
+    In a partially correct model a pose can be held by a moved object: ICP then fits that object, and the
+    unchanged surfaces around it are the ones left unexplained. The reverse reading of the same data is the
+    pose that fits those surfaces, with the object moved. This registers the patches of which fewer than
+    ``params.disagree_fraction`` of pixels agree with ``T_final`` (on the verification's grid) alone, by ICP from
+    ``T_final`` against the model predicted there (first reach ``params.disagree_reach`` of the range); their
+    pose is returned with its separation from the final pose, as :func:`_start_alternative` does, when it is
+    materially different (beyond twice the success tolerance). When the disagreeing patches are the change (the
+    final pose right), their pose misplaces the rest of the view and the data separate the two; when they are
+    the unchanged rest, they do not. The alternative is built from the patches that favour it, so the separation
+    leaves out as many of them as of those that favour the final pose (``separation_leave_out`` each way): one
+    moved object carries neither side.
+    None without such patches, when their ICP fails, or when their pose is the final one.
+    """
+    t0 = time.perf_counter()
+    pred = predict(model_simulator, scan.sensor, T_final, params.verify.stride)
+    _, f_final = agreement(description, scan, pred, params.verify)
+    timing["verification"] += time.perf_counter() - t0
+    by_id = {p.id: p for p in description.patches}
+    asking = [k for k, fr in sorted(f_final.items()) if fr < params.disagree_fraction and k in by_id]
+    if not asking:
+        return None
+    mask = np.zeros(description.labels.shape, dtype=bool)
+    flat = mask.reshape(-1)
+    for k in asking:
+        flat[by_id[k].pixels] = True
+    t0 = time.perf_counter()
+    ir = icp_refine(scan, pred, model, T_final, replace(params.icp, max_corr_rel=params.disagree_reach), mask)
+    timing["icp"] += time.perf_counter() - t0
+    if not ir.ok or _close(ir.T_world_sensor, T_final, scale, 2 * params.pin_angle_deg, 2 * params.pin_rel):
+        return None
+    t0 = time.perf_counter()
+    a_alt, f_alt = agreement(description, scan, predict(model_simulator, scan.sensor, ir.T_world_sensor,
+                                                        params.verify.stride), params.verify)
+    timing["verification"] += time.perf_counter() - t0
+    return PoseAlternative(ir.T_world_sensor, float(a_alt), separation_z(*agreement_separation(
+        description, f_final, f_alt, params.separation_leave_out, params.separation_leave_out)))
+
+
 def _confidence(z: float) -> float:
     """The confidence of a pose verdict from its least separation ``z`` (from a probe at the tolerance or an
     alternative): ``Phi(z)``, the probability that a difference measured ``z`` standard errors above 0 is
@@ -683,6 +746,10 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
     start = _start_alternative(description, scan, model_simulator, T_init, T_final, params, timing, scale)
     if start is not None and distinct(start.T_world_sensor, []):
         alternatives.append(start)
+    if params.use_icp and params.disagree_fraction > 0:
+        asked = _disagreeing_alternative(description, scan, model, model_simulator, T_final, params, timing, scale)
+        if asked is not None and distinct(asked.T_world_sensor, []):
+            alternatives.append(asked)
     pairs = {patch_ids[i]: (str(el.feature_id[e]) if e >= 0 else None) for i, e in best.pairs}
     # prediction at the final pose (shared with change detection) and the final confidence
     t0 = time.perf_counter()

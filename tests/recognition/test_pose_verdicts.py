@@ -43,6 +43,20 @@ def test_separation_is_the_weighted_mean_difference_over_its_standard_error():
     assert agreement_separation(desc, {0: 1.0}, {0: 0.0}) == (0.0, math.inf)  # one patch: nothing measures spread
 
 
+def test_leaving_out_the_patches_that_favour_either_pose():
+    """``leave_out`` drops the patches favouring A most, ``leave_out_b`` those favouring B most (ties: the larger
+    patch first); the rest is scored as before."""
+    desc = _desc([100, 200, 300, 400, 500])
+    fa = {0: 1.0, 1: 0.9, 2: 0.5, 3: 0.2, 4: 0.5}
+    fb = {0: 0.0, 1: 0.5, 2: 0.5, 3: 0.9, 4: 0.4}  # 0 favours A most, 3 favours B most
+    keep = {1, 2, 4}
+    ref = agreement_separation(desc, {k: fa[k] for k in keep}, {k: fb[k] for k in keep})
+    assert agreement_separation(desc, fa, fb, leave_out=1, leave_out_b=1) == pytest.approx(ref)
+    d_a, _ = agreement_separation(desc, fa, fb, leave_out=1)
+    d_ab, _ = agreement_separation(desc, fa, fb, leave_out=1, leave_out_b=1)
+    assert d_ab > d_a  # leaving out a patch that favours B never lowers d
+
+
 @settings(max_examples=40, deadline=None)
 @given(st.lists(st.floats(0, 1), min_size=2, max_size=8), st.floats(-0.5, 0.5))
 def test_a_uniform_shift_of_every_patch_is_measured_exactly(fractions, shift):
