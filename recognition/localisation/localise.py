@@ -304,10 +304,16 @@ def _explained(description: SceneDescription, matchable: frozenset[int], items, 
     (indices of patches with a primitive fit that the tree could match) that ``h`` leaves unmatched. Such a
     patch contradicts the model where it is (a new cabinet, a sphere of another radius): it is a change, and
     its points would pull the pose towards the nearest model surface."""
-    mask = np.ones(description.labels.shape, dtype=bool)
+    unmatched = matchable - {items[i].patch_index for i, e in h.pairs if e >= 0}
+    return ~_pixels_of(description, [description.patches[k] for k in unmatched])
+
+
+def _pixels_of(description: SceneDescription, patches) -> np.ndarray:
+    """Bool (H, W): the pixels of ``patches`` (scene patches of ``description``)."""
+    mask = np.zeros(description.labels.shape, dtype=bool)
     flat = mask.reshape(-1)
-    for k in matchable - {items[i].patch_index for i, e in h.pairs if e >= 0}:
-        flat[description.patches[k].pixels] = False
+    for p in patches:
+        flat[p.pixels] = True
     return mask
 
 
@@ -513,9 +519,26 @@ def _pinned(description: SceneDescription, scan: Scan, model_simulator, T: np.nd
                           lambda a, b: agreement_separation(description, a, b))
 
 
+def _verified(description: SceneDescription, scan: Scan, model_simulator, T: np.ndarray, params: LocaliseParams,
+              timing: dict[str, float]) -> tuple[Prediction, float, dict[int, float]]:
+    """The model predicted from ``T`` on the verification's grid (``params.verify.stride``) and the data's
+    :func:`agreement` with it (score, per-patch fractions); the time counts as verification."""
+    t0 = time.perf_counter()
+    pred = predict(model_simulator, scan.sensor, T, params.verify.stride)
+    score, fractions = agreement(description, scan, pred, params.verify)
+    timing["verification"] += time.perf_counter() - t0
+    return pred, float(score), fractions
+
+
+def _materially_different(A: np.ndarray, B: np.ndarray, scale: float, params: LocaliseParams) -> bool:
+    """Whether two poses are farther apart than twice the success tolerance an ok pose claims (``pin_angle_deg``,
+    ``pin_rel``; ``scale``: :func:`_pose_scale`), so that they cannot both be within it of the truth."""
+    return not _close(A, B, scale, 2 * params.pin_angle_deg, 2 * params.pin_rel)
+
+
 def _start_alternative(description: SceneDescription, scan: Scan, model_simulator, T_start: np.ndarray,
-                       T_final: np.ndarray, params: LocaliseParams, timing: dict[str, float], scale: float
-                       ) -> PoseAlternative | None:
+                       T_final: np.ndarray, f_final: dict[int, float], params: LocaliseParams,
+                       timing: dict[str, float], scale: float) -> PoseAlternative | None:
     """The pose the winning hypothesis started from (its pairs' closed form, before ICP) as an alternative to
     the final pose, when ICP carried the pose materially away from it: beyond twice the success tolerance an ok
     pose claims (``pin_angle_deg``, ``pin_rel``), so that the two cannot both be within it of the truth; None
@@ -526,22 +549,18 @@ def _start_alternative(description: SceneDescription, scan: Scan, model_simulato
     surface, a pipe of another radius): it can then leave the pose the pairs gave for one a few degrees off
     that the agreement, counting the changed parts too, prefers by a little. Only the data can say whether the
     move was for the better, so the final pose must be separated from its start like from any other
-    alternative (``separation_z``). Both are scored on the verification's grid (``params.verify``).
-    ``scale``: :func:`_pose_scale` of ``description``."""
-    if _close(T_start, T_final, scale, 2 * params.pin_angle_deg, 2 * params.pin_rel):
+    alternative (``separation_z``). Both are scored on the verification's grid (``params.verify``; ``f_final``:
+    the final pose's per-patch fractions, :func:`_verified`). ``scale``: :func:`_pose_scale` of ``description``."""
+    if not _materially_different(T_start, T_final, scale, params):
         return None
-    t0 = time.perf_counter()
-    scored = [agreement(description, scan, predict(model_simulator, scan.sensor, T, params.verify.stride),
-                        params.verify) for T in (T_final, T_start)]
-    timing["verification"] += time.perf_counter() - t0
-    (_, f_final), (a_start, f_start) = scored
-    return PoseAlternative(T_start, float(a_start), separation_z(
+    _, a_start, f_start = _verified(description, scan, model_simulator, T_start, params, timing)
+    return PoseAlternative(T_start, a_start, separation_z(
         *agreement_separation(description, f_final, f_start, params.separation_leave_out)))
 
 
 def _disagreeing_alternative(description: SceneDescription, scan: Scan, model: SceneModel, model_simulator,
-                             T_final: np.ndarray, params: LocaliseParams, timing: dict[str, float], scale: float
-                             ) -> PoseAlternative | None:
+                             final: tuple[Prediction, float, dict[int, float]], params: LocaliseParams,
+                             timing: dict[str, float], scale: float) -> PoseAlternative | None:
     """The pose that the patches the final pose leaves unexplained ask for, as an alternative to it.
 
     In a partially correct model a pose can be held by a moved object: ICP then fits that object, and the
@@ -555,30 +574,23 @@ def _disagreeing_alternative(description: SceneDescription, scan: Scan, model: S
     the unchanged rest, they do not. The alternative is built from the patches that favour it, so the separation
     leaves out as many of them as of those that favour the final pose (``separation_leave_out`` each way): one
     moved object carries neither side.
-    None without such patches, when their ICP fails, or when their pose is the final one.
+    None without such patches, when their ICP fails, or when their pose is the final one. ``final``: the final
+    pose's :func:`_verified`.
     """
-    t0 = time.perf_counter()
-    pred = predict(model_simulator, scan.sensor, T_final, params.verify.stride)
-    _, f_final = agreement(description, scan, pred, params.verify)
-    timing["verification"] += time.perf_counter() - t0
+    pred, _, f_final = final
+    T_final = pred.T_world_sensor
     by_id = {p.id: p for p in description.patches}
-    asking = [k for k, fr in sorted(f_final.items()) if fr < params.disagree_fraction and k in by_id]
+    asking = [by_id[k] for k, fr in sorted(f_final.items()) if fr < params.disagree_fraction and k in by_id]
     if not asking:
         return None
-    mask = np.zeros(description.labels.shape, dtype=bool)
-    flat = mask.reshape(-1)
-    for k in asking:
-        flat[by_id[k].pixels] = True
     t0 = time.perf_counter()
-    ir = icp_refine(scan, pred, model, T_final, replace(params.icp, max_corr_rel=params.disagree_reach), mask)
+    ir = icp_refine(scan, pred, model, T_final, replace(params.icp, max_corr_rel=params.disagree_reach),
+                    _pixels_of(description, asking))
     timing["icp"] += time.perf_counter() - t0
-    if not ir.ok or _close(ir.T_world_sensor, T_final, scale, 2 * params.pin_angle_deg, 2 * params.pin_rel):
+    if not ir.ok or not _materially_different(ir.T_world_sensor, T_final, scale, params):
         return None
-    t0 = time.perf_counter()
-    a_alt, f_alt = agreement(description, scan, predict(model_simulator, scan.sensor, ir.T_world_sensor,
-                                                        params.verify.stride), params.verify)
-    timing["verification"] += time.perf_counter() - t0
-    return PoseAlternative(ir.T_world_sensor, float(a_alt), separation_z(*agreement_separation(
+    _, a_alt, f_alt = _verified(description, scan, model_simulator, ir.T_world_sensor, params, timing)
+    return PoseAlternative(ir.T_world_sensor, a_alt, separation_z(*agreement_separation(
         description, f_final, f_alt, params.separation_leave_out, params.separation_leave_out)))
 
 
@@ -743,11 +755,12 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
                             "(had it moved, it would have carried the pose)")
         else:
             icp_note = f"; ICP not applied: {ir.reason}"
-    start = _start_alternative(description, scan, model_simulator, T_init, T_final, params, timing, scale)
+    final_v = _verified(description, scan, model_simulator, T_final, params, timing)  # (for both alternatives)
+    start = _start_alternative(description, scan, model_simulator, T_init, T_final, final_v[2], params, timing, scale)
     if start is not None and distinct(start.T_world_sensor, []):
         alternatives.append(start)
     if params.use_icp and params.disagree_fraction > 0:
-        asked = _disagreeing_alternative(description, scan, model, model_simulator, T_final, params, timing, scale)
+        asked = _disagreeing_alternative(description, scan, model, model_simulator, final_v, params, timing, scale)
         if asked is not None and distinct(asked.T_world_sensor, []):
             alternatives.append(asked)
     pairs = {patch_ids[i]: (str(el.feature_id[e]) if e >= 0 else None) for i, e in best.pairs}

@@ -364,7 +364,8 @@ def test_the_pose_the_unexplained_patches_ask_for_is_an_alternative():
     found = {}
     for name, T_final in (("right", T), ("held", held)):
         timing = {"verification": 0.0, "icp": 0.0}
-        found[name] = localise_module._disagreeing_alternative(desc, scan, model, sim, T_final, params, timing, 3.0)
+        final = localise_module._verified(desc, scan, sim, T_final, params, timing)
+        found[name] = localise_module._disagreeing_alternative(desc, scan, model, sim, final, params, timing, 3.0)
     right, held_alt = found["right"], found["held"]
     assert right is not None and held_alt is not None
     assert right.separation > params.separation_z  # the cabinet's pose misplaces the rest: the right pose stands

@@ -172,13 +172,14 @@ def test_the_pose_icp_started_from_is_an_alternative_once_icp_carried_it_beyond_
     params, timing = LocaliseParams(), {"verification": 0.0}
     final, start = np.eye(4), np.eye(4)
     start[0, 3] = 1.0  # 1 m away: beyond 1 % of the 2 m range
-    alt = loc._start_alternative(desc, scan, None, start, final, params, timing, loc._pose_scale(desc))
+    alt = loc._start_alternative(desc, scan, None, start, final, fractions[0], params, timing, loc._pose_scale(desc))
     d, se = agreement_separation(desc, fractions[0], fractions[1], params.separation_leave_out)
     assert np.array_equal(alt.T_world_sensor, start) and alt.agreement == pytest.approx(0.5)
     assert alt.separation == pytest.approx(d / se)
     near = np.eye(4)
     near[0, 3] = 0.03  # 30 mm: within twice 1 % of 2 m
-    assert loc._start_alternative(desc, scan, None, near, final, params, timing, loc._pose_scale(desc)) is None
+    assert loc._start_alternative(desc, scan, None, near, final, fractions[0], params, timing,
+                                  loc._pose_scale(desc)) is None
 
 
 @settings(max_examples=40, deadline=None)
