@@ -10,7 +10,9 @@ edge, in the feature's own coordinates:
   (and within the other axis's extent): the surface goes on where the model says it ends;
 * **shrunk**: the feature's explained pixels stop short of an edge, and the model's pixels of the feature beyond
   that observed edge show the background (revealed), not an occluder: the surface ends where the model says
-  it goes on.
+  it goes on. Where nothing lies behind (a bay's wall shortened: its rays past the new end leave the bay), the
+  background is *no return where a return was expected*: no data on a ray that meets the model's surface within
+  the sensor's range limits, away from grazing incidence (:func:`return_expected`).
 
 Positions along an axis are those of each pixel's ray on the model's unbounded surface (noise-free up to the
 pose), so an edge is located to a pixel footprint whatever the range noise. An edge moved when enough pixels
@@ -26,6 +28,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import ConvexHull, QhullError
 
 from scenes.features import Cylinder, Feature, Plane
 
@@ -94,6 +97,22 @@ def ray_hits(f: Feature, origin: np.ndarray, rays: np.ndarray) -> np.ndarray:
     return out
 
 
+def return_expected(f: Feature, origin: np.ndarray, rays: np.ndarray, cos_grazing: float) -> np.ndarray:
+    """Whether world rays (N, 3, unit) from ``origin`` meet the feature's unbounded surface at an incidence whose
+    cosine is at least ``cos_grazing`` (bool (N,)): a sensor returns from such a surface unless something is
+    wrong with it (a dropout at grazing incidence is expected; one at near-normal incidence is not)."""
+    hits = ray_hits(f, origin, rays)
+    ok = np.all(np.isfinite(hits), axis=1)
+    if isinstance(f, Plane):
+        normals = np.broadcast_to(f.normal, rays.shape)
+    else:  # Cylinder: the radial direction at the hit
+        w = np.where(ok[:, None], hits, 0.0) - f.centre
+        radial = w - np.outer(w @ f.axis, f.axis)
+        normals = radial / np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-12)
+    cos = np.abs(np.einsum("ij,ij->i", rays, normals))
+    return ok & (cos >= cos_grazing)
+
+
 def extent_changes(f: Feature, origin: np.ndarray, rays_w: np.ndarray, data_w: np.ndarray, margin: np.ndarray,
                    allowance: np.ndarray, found: np.ndarray, revealed: np.ndarray, beyond_predicted: np.ndarray,
                    candidates: np.ndarray, min_pixels: int, revealed_share: float,
@@ -155,6 +174,56 @@ def extent_changes(f: Feature, origin: np.ndarray, rays_w: np.ndarray, data_w: n
             continue  # one edge on, the opposite one back: a slide within the surface, not another extent
         changes.extend(per_axis)
     return changes
+
+
+def outgrows(f: Plane, pts: np.ndarray, normal: np.ndarray, margin_m: float, tolerance: float) -> bool:
+    """Whether a patch (world points (N, 3) on a plane of unit ``normal``) found away from face ``f`` is larger
+    than ``f``: not ``f`` moved rigidly, which keeps its size, but ``f`` resized with its object.
+
+    A patch seen of a face is at most the face, along any direction within it; it is larger when, in both of two
+    frames, one of its two extents exceeds the face's dimension by ``tolerance`` of it plus ``margin_m``: the
+    face's own axes turned with its normal (exact for a face that turned about a horizontal axis or not at all)
+    and the patch's least-area enclosing rectangle against the face's sides (exact for a face turned within its
+    plane, whose own axes would see the diagonal).
+    """
+    n = normal / np.linalg.norm(normal)
+    n = n if float(n @ f.normal) >= 0 else -n
+    R = _rotation_between(f.normal, n)
+    sides = 2 * np.asarray(f.half_size, dtype=np.float64)
+    uv = (pts - pts.mean(axis=0)) @ np.stack([R @ f.u_axis, R @ f.v_axis], axis=1)
+    lo, hi = np.quantile(uv, [0.005, 0.995], axis=0)
+    bound = sides * (1 + tolerance) + margin_m
+    if not np.any(hi - lo > bound):
+        return False
+    rect = _least_area_rectangle(uv)
+    return bool(np.any(np.sort(rect) > np.sort(sides) * (1 + tolerance) + margin_m))
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The least rotation (3, 3) taking unit vector ``a`` to unit vector ``b`` (Rodrigues)."""
+    v, c = np.cross(a, b), float(a @ b)
+    if c < -1 + 1e-12:
+        raise ValueError("opposite vectors: no least rotation")
+    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + K + K @ K / (1 + c)
+
+
+def _least_area_rectangle(xy: np.ndarray) -> np.ndarray:
+    """Side lengths (2,) of the least-area rectangle enclosing 2-D points (N, 2), from their convex hull's edge
+    directions (one side of the least-area rectangle lies along a hull edge), over the central 99 % of the
+    points along each direction (a stray point does not widen it)."""
+    try:
+        hull = xy[ConvexHull(xy).vertices]
+    except (QhullError, ValueError):  # collinear or too few points: the extents along the principal axis
+        return np.ptp(xy, axis=0)
+    edges = np.diff(np.vstack([hull, hull[:1]]), axis=0)
+    d = edges / np.maximum(np.linalg.norm(edges, axis=1, keepdims=True), 1e-12)
+    along = xy @ d.T  # (N, E)
+    across = xy @ np.stack([-d[:, 1], d[:, 0]], axis=1).T
+    qa, qc = np.quantile(along, [0.005, 0.995], axis=0), np.quantile(across, [0.005, 0.995], axis=0)
+    wa, wc = qa[1] - qa[0], qc[1] - qc[0]
+    k = int(np.argmin(wa * wc))
+    return np.array([wa[k], wc[k]])
 
 
 def footprint(rays: np.ndarray) -> np.ndarray:

@@ -11,7 +11,7 @@ from evaluation.aggregate import aggregate_change
 from evaluation.oracles import truth_classification, truth_segmentation
 from recognition.change import ChangeParams, detect_changes
 from recognition.change.detection import _agrees, _same_place, _same_shape
-from recognition.change.extent import GROWN, SHRUNK, extent_changes, ray_hits
+from recognition.change.extent import GROWN, SHRUNK, extent_changes, outgrows, ray_hits, return_expected
 from recognition.describe import core_sigma, describe
 from recognition.localisation import ModelPredictor
 from scenes import builders
@@ -165,6 +165,127 @@ def test_extent_changes_of_a_plane_from_pixels():
     assert shrunk[0].amount_m == pytest.approx(0.2, abs=0.03)
     assert edges(found, inside[x[inside] <= -0.3], np.flatnonzero(x > 0.6)) == []  # a slide along u
     assert edges(inside, np.zeros(0, int), np.zeros(0, int)) == []
+
+
+def test_a_patch_outgrows_a_face_only_when_it_is_larger_along_some_direction():
+    """Points of a patch on a 1.0 x 0.5 face's plane: a part of the face, or the whole face turned within its
+    plane (whose own axes would see its diagonal), does not outgrow it; a 1.3 x 0.5 or a 1.0 x 0.7 rectangle
+    does, whatever its turn, at 5 % tolerance and a 1 cm margin; a thin diagonal strip across the face (longer
+    than its side, in its own frame) does not."""
+    face = Plane("f", centre=np.zeros(3), normal=np.array([0, 0, 1.0]), u_axis=np.array([1.0, 0, 0]),
+                 half_size=(0.5, 0.25))
+    rng = np.random.default_rng(0)
+
+    def rect(a, b, turn=0.0, n=4000):
+        xy = (rng.uniform(-0.5, 0.5, (n, 2)) * [a, b]) @ np.array([[np.cos(turn), np.sin(turn)],
+                                                                  [-np.sin(turn), np.cos(turn)]])
+        return np.column_stack([xy, np.full(n, 0.3)])  # on a parallel plane, displaced along the normal
+
+    def grows(pts, normal=(0, 0, 1.0)):
+        return outgrows(face, pts, np.array(normal), 0.01, 0.05)
+
+    assert not grows(rect(1.0, 0.5))
+    assert not grows(rect(0.6, 0.3))
+    assert not grows(rect(1.0, 0.5, turn=0.5))
+    assert not grows(rect(1.0, 0.5), normal=(0, 0, -1.0))  # a normal fitted the other way round
+    for turn in (0.0, 0.3, 1.2):
+        assert grows(rect(1.3, 0.5, turn)) and grows(rect(1.0, 0.7, turn))
+    t = rng.uniform(-0.5, 0.5, 4000)
+    strip = np.column_stack([t * 1.0, t * 0.5 + rng.normal(0, 0.005, t.size), np.zeros(t.size)])
+    assert np.ptp(strip[:, :2] @ np.array([2.0, 1.0]) / np.sqrt(5.0)) > 1.05  # longer than the face's side
+    assert not grows(strip)
+
+
+def test_a_return_is_expected_from_a_surface_met_squarely_not_at_grazing_incidence():
+    face = Plane("f", centre=np.zeros(3), normal=np.array([0, 0, 1.0]), u_axis=np.array([1.0, 0, 0]),
+                 half_size=(0.5, 0.5))
+    origin = np.array([0, 0, 1.0])
+    angles = np.radians([0.0, 30.0, 60.0, 85.0, 100.0])  # from the normal; the last one points away
+    rays = np.column_stack([np.sin(angles), np.zeros(5), -np.cos(angles)])
+    expected = return_expected(face, origin, rays, np.cos(np.radians(75.0)))
+    assert expected.tolist() == [True, True, True, False, False]
+
+
+def test_no_return_shows_absence_only_where_nothing_near_borders_it():
+    """Pixels without data where the model shows a surface in range: silent (nothing there) in a wide region -
+    not in a thin strip (a face at grazing incidence drops out so), not where their region borders a return
+    nearer than twice the least range (something in the blind zone may hide what lies behind), and not where the
+    model's surface is outside the range limits."""
+    from types import SimpleNamespace
+
+    from recognition.change.detection import _no_return
+
+    rng = np.full((40, 60), 2.0)
+    rng[2:12, 2:12] = np.nan  # nothing there
+    rng[20:30, 20:30] = np.nan  # a blind-zone occluder: its rim returns at 0.45 m
+    rng[20:30, 30] = 0.45
+    rng[2:12, 40:50] = np.nan  # no return where the model's surface is beyond the range limit
+    rng[34:36, 2:40] = np.nan  # a strip two pixels wide
+    predicted = np.full(rng.shape, 2.0)
+    predicted[2:12, 40:50] = 30.0
+    scan = SimpleNamespace(range=rng, valid=np.isfinite(rng),
+                           sensor=SimpleNamespace(min_range=0.3, max_range=20.0))
+    silent = _no_return(scan, SimpleNamespace(range=predicted), clearance=2.0)
+    expected = np.zeros(rng.shape, bool)
+    expected[2:12, 2:12] = True
+    assert np.array_equal(silent, expected)
+    assert _no_return(scan, SimpleNamespace(range=predicted), clearance=1.0)[20:30, 20:30].all()
+
+
+def test_a_shortened_wall_with_nothing_behind_its_new_end_is_altered():
+    """A wall 3 m shorter at each end, seen from inside the room: past its new ends there is no surface at all
+    (no data), within the sensor's range and away from grazing incidence, so the wall ends where the model says
+    it goes on: shrunk, altered. The unchanged wall stays unchanged."""
+    floor = builders.floor("floor", 14.0, 6.0)
+    cab = builders.cabinet("cab", (0.0, 0.5, 0.0), 0.0, (0.8, 0.5, 0.9))
+    T = look_at([0.0, -4.0, 1.6], [0.0, 2.0, 1.2])
+
+    def labels(length):
+        apriori = SceneModel("t", (floor, builders.wall("wall", (0.0, 2.0, 0.0), 0.0, 12.0, 3.0, 0.2), cab))
+        actual = SceneModel("t", (floor, builders.wall("wall", (0.0, 2.0, 0.0), 0.0, length, 3.0, 0.2), cab))
+        scan, truth = Simulator.from_scene(actual).simulate(sensor_from_yaml(SENSOR), T, np.random.default_rng(0))
+        desc = truth_classification(describe(scan, segmentation=truth_segmentation(scan, truth, core_sigma(scan))),
+                                    truth)
+        return detect_changes(desc, scan, apriori, truth.T_world_sensor, predictor=ModelPredictor(apriori))
+
+    assert labels(12.0).features["wall.yn"].label == "unchanged"
+    shortened = labels(6.0).features["wall.yn"]
+    assert shortened.label == "altered" and SHRUNK in shortened.reason, shortened
+
+
+def test_a_cabinet_larger_every_way_is_altered_not_moved():
+    """Wider, deeper and taller about its base: every face it shows is found displaced along its normal (none in
+    place to show an edge moved) and larger than the model's face: a resize, not a move."""
+    seen, result = _labels(_cabinet((0.8, 0.5, 0.9)), _cabinet((1.1, 0.9, 1.2)))
+    assert seen["cab.yn"] == "altered", result.features["cab.yn"]
+    assert result.features["cab.yn"].reason == "found displaced, larger than the model's face"
+    assert result.objects["cab"] == "altered"
+    assert "moved" not in seen.values()
+
+
+def test_an_unchanged_cabinet_whose_faces_one_patch_merges_is_unchanged(monkeypatch):
+    """Its front and side faces segmented as one patch across their crease: the merged patch's plane fits
+    neither face, so tight matching finds the front's fit off. Every point of the patch is explained where it is:
+    it shows no face displaced (``moved_unexplained_fraction``), and with no displaced patch to confirm the fit's
+    disagreement the front is where the model has it - unchanged, neither moved nor missing."""
+    import evaluation.oracles as oracles
+
+    part = builders.cabinet("cab", (-1.0, 0.3, 0.0), 0.6, (0.8, 0.5, 0.9))
+    regions_of = oracles.truth_regions
+
+    def merged(truth, valid):
+        regions = regions_of(truth, valid)
+        names = [s.feature_id for s in truth.surfaces]
+        sid = np.where(regions >= 0, truth.surface_id, -1)
+        front, side = (np.isin(sid, [i for i, n in enumerate(names) if n == fid]) for fid in ("cab.yn", "cab.xn"))
+        assert front.sum() > 200 and side.sum() > 200  # both faces in view
+        regions[side] = regions[front][0]
+        return regions
+
+    monkeypatch.setattr(oracles, "truth_regions", merged)
+    seen, result = _labels(part, part)
+    assert seen["cab.yn"] == seen["cab.xn"] == "unchanged", result.features["cab.yn"]
+    assert result.new_patches == ()
 
 
 def test_altered_by_kind_appears_in_the_change_summary():
