@@ -266,7 +266,7 @@ def test_a_cabinet_larger_every_way_is_altered_not_moved():
 def test_an_unchanged_cabinet_whose_faces_one_patch_merges_is_unchanged(monkeypatch):
     """Its front and side faces segmented as one patch across their crease: the merged patch's plane fits
     neither face, so tight matching finds the front's fit off. Every point of the patch is explained where it is:
-    it shows no face displaced (``moved_unexplained_fraction``), and with no displaced patch to confirm the fit's
+    it shows no face displaced (``changed_unexplained_fraction``), and with no displaced patch to confirm the fit's
     disagreement the front is where the model has it - unchanged, neither moved nor missing."""
     import evaluation.oracles as oracles
 
@@ -286,6 +286,21 @@ def test_an_unchanged_cabinet_whose_faces_one_patch_merges_is_unchanged(monkeypa
     seen, result = _labels(part, part)
     assert seen["cab.yn"] == seen["cab.xn"] == "unchanged", result.features["cab.yn"]
     assert result.new_patches == ()
+
+
+def test_a_fit_on_a_patch_the_model_explains_alters_nothing():
+    """A pipe section's patch fitted with a radius 16 % over the model's, 10 sigma off, alters it - unless every
+    point of the patch lies on the model's surface within the allowance (``in_place``): then the data show no
+    change, and the fit's disagreement is its own bias (a Kinect-like pipe at 2 m fits 0.117 m for 0.101 m)."""
+    from recognition.change.detection import _altered_by_patches
+    from scenes.features import Cylinder
+
+    f = Cylinder("run.s0", centre=np.zeros(3), axis=np.array([0, 0, 1.0]), radius=0.101, length=1.6)
+    prims = {7: {"point": np.zeros(3), "axis": np.array([0, 0, 1.0]), "radius": 0.117, "radius_sigma": 0.0016,
+                 "axis_sigma": 0.01}}
+    params = ChangeParams()
+    assert _altered_by_patches(f, [7], prims, {7: 500}, params) == [7]
+    assert _altered_by_patches(f, [7], prims, {7: 500}, params, in_place=frozenset({7})) == []
 
 
 def test_altered_by_kind_appears_in_the_change_summary():
