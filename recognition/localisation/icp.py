@@ -29,7 +29,7 @@ from sensors.range_image import Scan
 
 from .prediction import Prediction
 
-__all__ = ["IcpParams", "IcpResult", "model_normals", "icp_refine"]
+__all__ = ["IcpParams", "IcpResult", "model_normals", "icp_refine", "icp_fixed_directions"]
 
 
 @dataclass(frozen=True)
@@ -164,31 +164,11 @@ def icp_refine(scan: Scan, prediction: Prediction, model: SceneModel, T_init: np
 
     T0 = np.array(prediction.T_world_sensor if T_init is None else T_init, dtype=np.float64)
     fail = IcpResult(False, "", T0, None, 0.0, math.nan, 0, 6)
-    # target: predicted points in the world frame, with analytic normals
-    pts_s = prediction.points_sensor().reshape(-1, 3)
-    sid = prediction.surface_id.ravel()
-    keep = np.flatnonzero((sid >= 0) & np.isfinite(pts_s[:, 0]))
-    if len(keep) < 30:
-        return _replace_reason(fail, f"the model predicts too few visible points ({len(keep)})")
-    Tp = prediction.T_world_sensor
-    tgt = pts_s[keep] @ Tp[:3, :3].T + Tp[:3, 3]
-    fids = np.array([s.feature_id for s in prediction.surfaces], dtype=object)[sid[keep]]
-    parts = np.array([s.part for s in prediction.surfaces], dtype=object)[sid[keep]]
-    nrm = model_normals(model, fids, parts, tgt)
-    good = np.all(np.isfinite(nrm), axis=1)
-    tgt, nrm = tgt[good], nrm[good]
-    movable = {f: model.object_of(f) for f in set(fids.tolist())}
-    movable = {f: o for f, o in movable.items() if model.object(o).kind not in STABLE_KINDS}
-    objects = np.array([movable.get(f, "") for f in fids[good].tolist()], dtype=object)
-    # source: scan points on a stride
-    s = params.source_stride
-    src = scan.points[::s, ::s].reshape(-1, 3)
-    usable = np.all(np.isfinite(src), axis=1)
-    if source_mask is not None:
-        usable &= np.asarray(source_mask, dtype=bool)[::s, ::s].ravel()
-    src = src[usable]
-    if len(src) > params.max_source_points:
-        src = src[np.linspace(0, len(src) - 1, params.max_source_points).round().astype(np.intp)]
+    target = _target(prediction, model)
+    if len(target[0]) < 30:
+        return _replace_reason(fail, f"the model predicts too few visible points ({len(target[0])})")
+    tgt, nrm, objects = target
+    src = _source(scan, params, source_mask)
     if len(src) < 30:
         return _replace_reason(fail, f"too few scan points ({len(src)})")
     med_range = float(np.median(np.linalg.norm(src, axis=1)))
@@ -230,6 +210,94 @@ def icp_refine(scan: Scan, prediction: Prediction, model: SceneModel, T_init: np
     cov = np.linalg.pinv(info, rcond=1e-12, hermitian=True)
     return IcpResult(True, "", T, cov, float(res.fitness), float(np.sqrt(np.mean(r[inl] ** 2))), len(corr), free,
                      free_without, resting_on)
+
+
+def _target(prediction: Prediction, model: SceneModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """ICP's target: the predicted points (N, 3) in the world frame, their analytic normals (N, 3), and the
+    movable object (N,) each lies on ("" for the stable kinds)."""
+    pts_s = prediction.points_sensor().reshape(-1, 3)
+    sid = prediction.surface_id.ravel()
+    keep = np.flatnonzero((sid >= 0) & np.isfinite(pts_s[:, 0]))
+    Tp = prediction.T_world_sensor
+    tgt = pts_s[keep] @ Tp[:3, :3].T + Tp[:3, 3]
+    fids = np.array([s.feature_id for s in prediction.surfaces], dtype=object)[sid[keep]]
+    parts = np.array([s.part for s in prediction.surfaces], dtype=object)[sid[keep]]
+    nrm = model_normals(model, fids, parts, tgt) if len(keep) else np.zeros((0, 3))
+    good = np.all(np.isfinite(nrm), axis=1)
+    movable = {f: model.object_of(f) for f in set(fids.tolist())}
+    movable = {f: o for f, o in movable.items() if model.object(o).kind not in STABLE_KINDS}
+    objects = np.array([movable.get(f, "") for f in fids[good].tolist()], dtype=object)
+    return tgt[good], nrm[good], objects
+
+
+def _source(scan: Scan, params: IcpParams, source_mask: np.ndarray | None) -> np.ndarray:
+    """ICP's source: the scan's points (N, 3, sensor frame) on ``params.source_stride`` within ``source_mask``,
+    thinned on a regular stride to at most ``params.max_source_points``."""
+    s = params.source_stride
+    src = scan.points[::s, ::s].reshape(-1, 3)
+    usable = np.all(np.isfinite(src), axis=1)
+    if source_mask is not None:
+        usable &= np.asarray(source_mask, dtype=bool)[::s, ::s].ravel()
+    src = src[usable]
+    if len(src) > params.max_source_points:
+        src = src[np.linspace(0, len(src) - 1, params.max_source_points).round().astype(np.intp)]
+    return src
+
+
+def icp_fixed_directions(scan: Scan, prediction: Prediction, model: SceneModel, T_init: np.ndarray,
+                         source_mask: np.ndarray, reach_m: float, params: IcpParams = IcpParams(),
+                         iterations: int = 30, min_eigen_ratio: float = 1e-4) -> IcpResult:
+    """Register the scan points of ``source_mask`` to the predicted-visible model, moving ``T_init`` only in the
+    directions those points fix.
+
+    A few patches (a wall alone) leave directions of the pose free; an unconstrained solve lets the pose drift
+    along them until nothing corresponds. Here each Gauss-Newton step of the point-to-plane residuals (Tukey
+    weights at half the correspondence distance) is solved in the span of the information's eigenvectors whose
+    eigenvalues exceed ``min_eigen_ratio`` of the largest (rotation in rad, translation scaled by the median
+    range): the free directions keep ``T_init``'s values. Correspondences reach ``reach_m`` at first, a third of
+    that after a third of the iterations, a ninth after two thirds (floored by ``params.max_corr_min_m``).
+
+    Returns an :class:`IcpResult` (no covariance; ``free_dof`` the directions left at ``T_init``), not ok when
+    fewer than ``params.min_fitness`` of the source points correspond at the end.
+    """
+    from scipy.spatial import cKDTree
+    from scipy.spatial.transform import Rotation
+
+    T = np.array(T_init, dtype=np.float64)
+    fail = IcpResult(False, "", T, None, 0.0, math.nan, 0, 6)
+    tgt, nrm, _ = _target(prediction, model)
+    src = _source(scan, params, source_mask)
+    if len(tgt) < 30 or len(src) < 30:
+        return _replace_reason(fail, f"too few points ({len(src)} of the scan, {len(tgt)} of the model)")
+    med_range = float(np.median(np.linalg.norm(src, axis=1)))
+    S = np.diag([1.0, 1.0, 1.0, med_range, med_range, med_range])
+    tree = cKDTree(tgt)
+    free, n_corr = 6, 0
+    for it in range(iterations):
+        reach = max(reach_m / 3 ** (3 * it // iterations), params.max_corr_min_m)
+        src_w = src @ T[:3, :3].T + T[:3, 3]
+        dist, idx = tree.query(src_w, distance_upper_bound=reach)
+        hit = np.isfinite(dist)
+        n_corr = int(hit.sum())
+        if n_corr < 30:
+            return _replace_reason(fail, f"{n_corr} correspondences within {reach:.3f} m")
+        r, J = _info(src_w[hit], tgt[idx[hit]], nrm[idx[hit]])
+        c = reach / 2
+        w = np.where(np.abs(r) < c, (1 - (r / c) ** 2) ** 2, 0.0)
+        Js = J @ S
+        info = Js.T @ (w[:, None] * Js)
+        vals, vecs = np.linalg.eigh(info)
+        fixed = vals > min_eigen_ratio * max(float(vals[-1]), 1e-300)
+        free = int((~fixed).sum())
+        g = vecs[:, fixed].T @ (Js.T @ (w * r))
+        step = S @ (vecs[:, fixed] @ (-g / vals[fixed]))
+        R_d = Rotation.from_rotvec(step[:3]).as_matrix()
+        T = np.vstack([np.hstack([R_d @ T[:3, :3], (R_d @ T[:3, 3] + step[3:])[:, None]]), [0, 0, 0, 1.0]])
+    fitness = n_corr / len(src)
+    if fitness < params.min_fitness:
+        return _replace_reason(IcpResult(False, "", T_init, None, fitness, math.nan, n_corr, free),
+                               f"fitness {fitness:.2f} below {params.min_fitness}")
+    return IcpResult(True, "", T, None, fitness, math.nan, n_corr, free)
 
 
 def _icp_passes(o3d, source, target, raw: list[float], floor: float, T: np.ndarray, params: IcpParams):

@@ -36,7 +36,7 @@ from recognition.tuning import tuned
 from scenes.model import SceneModel
 from sensors.range_image import Scan
 
-from .icp import IcpParams, icp_refine
+from .icp import STABLE_KINDS, IcpParams, icp_fixed_directions, icp_refine
 from .interpretation_tree import given_match, match
 from .matching import MatchParams, make_pair, model_elements
 from .pose import estimate_pose
@@ -109,6 +109,11 @@ class LocaliseParams:
         the final pose must be separated from. 0: no such alternative.
     disagree_reach : ... by an ICP whose first correspondences reach this fraction of the median range (the held
         poses are a few percent of the range off, beyond the final ICP's first reach, ``icp.max_corr_rel``).
+    stable_reach : the same reach for those of them that see a floor or a wall, registered moving the pose only
+        in the directions they fix, then by the final ICP on the whole view (:func:`_stable_alternative`).
+    object_share : a patch sees an object when the model predicts it over at least this share of the patch's
+        pixels; the separation from the stable alternative leaves out the patches of the one movable object (or
+        lone patch) that most favours each side.
 
     Every field's unit and where its value was chosen: :func:`recognition.tuning.tuned` (``docs/tuning.md``).
     """
@@ -172,8 +177,17 @@ class LocaliseParams:
         0.5, unit="fraction", chosen="not tuned: a patch mostly unexplained by the pose (under half its pixels agree)")
     disagree_reach: float = tuned(
         0.1, unit="fraction of range", chosen="not tuned: five times the materially different distance (2 %)")
+    stable_reach: float = tuned(
+        0.2, unit="fraction of range", chosen="set, not swept: ten times the materially different distance (2 %); "
+        "0.1 missed a wall 0.25 m off at a scale of 1.4 m (factory-s3003-p20-v1 of full's factory group)")
+    object_share: float = tuned(0.3, unit="fraction", chosen="set, not swept: the overlap_share of change "
+                                "detection")
 
     def __post_init__(self):
+        if not 0 < self.object_share <= 1:
+            raise ValueError(f"object_share must be in (0, 1], got {self.object_share}")
+        if not self.stable_reach > 0:
+            raise ValueError(f"stable_reach must be > 0, got {self.stable_reach}")
         if not 0 <= self.disagree_fraction <= 1 or self.disagree_reach <= 0:
             raise ValueError(f"disagree_fraction must be in [0, 1] and disagree_reach > 0, got "
                              f"{self.disagree_fraction}, {self.disagree_reach}")
@@ -331,8 +345,8 @@ def _close(A: np.ndarray, B: np.ndarray, scale: float, angle_deg: float, rel: fl
 
 
 def agreement_separation(description: SceneDescription, fractions_a: dict[int, float],
-                         fractions_b: dict[int, float], leave_out: int = 0, leave_out_b: int = 0
-                         ) -> tuple[float, float]:
+                         fractions_b: dict[int, float], leave_out: int = 0, leave_out_b: int = 0,
+                         objects: dict[int, frozenset[str]] | None = None) -> tuple[float, float]:
     """How far the data prefer pose A to pose B: ``(d, se)``, the difference of their agreements over the
     patches both score and its standard error, after leaving out the ``leave_out`` patches that favour A most
     (and the ``leave_out_b`` that favour B most).
@@ -354,6 +368,10 @@ def agreement_separation(description: SceneDescription, fractions_a: dict[int, f
     leave_out_b : the same for the patches with the smallest ``f_A - f_B`` (ties: the larger, then the lower patch
         id first); leaving out such a patch never lowers ``d``. For an alternative built from the patches that
         favour it (:func:`_disagreeing_alternative`).
+    objects : ``{patch id: the movable model objects the patch sees}`` (:func:`_patch_objects`); with it, the
+        patches that favour A of the one unit - a movable object, or a patch that sees none - whose favour to A
+        is the largest (``log(pixels)``-weighted) are left out too, and so for B. A moved object carries all of
+        its patches and those it hid at its old place, not one.
     """
     size = {p.id: p.n_pixels for p in description.patches}
     common = sorted(set(fractions_a) & set(fractions_b))
@@ -363,6 +381,10 @@ def agreement_separation(description: SceneDescription, fractions_a: dict[int, f
     if leave_out_b > 0 and common:
         favour_b = sorted(common, key=lambda k: (fractions_a[k] - fractions_b[k], -size[k], k))
         common = sorted(favour_b[leave_out_b:])
+    if objects:  # and the patches of the one movable object that most favours each side
+        for sign in (1.0, -1.0):
+            common = _without_object(common, objects, {k: sign * (fractions_a[k] - fractions_b[k]) for k in common},
+                                     size)
     if len(common) < 2:
         return 0.0, math.inf
     w = np.array([math.log(size[k]) for k in common])
@@ -371,6 +393,50 @@ def agreement_separation(description: SceneDescription, fractions_a: dict[int, f
     n = len(common)
     se = float(math.sqrt(n / (n - 1) * float(np.sum(w**2 * (delta - d) ** 2))) / w.sum())
     return d, se
+
+
+def _without_object(common: list[int], objects: dict[int, frozenset[str]], favour: dict[int, float],
+                    size: dict[int, int]) -> list[int]:
+    """``common`` without the patches favouring a side (``favour`` > 0) of the one unit whose weighted favour to
+    that side is the largest: a movable object (``objects``: all the patches that see it) or a patch that sees
+    none (ties: the larger favour's unit name, objects by name, lone patches by id)."""
+    total: dict[str, float] = {}
+    for k in common:
+        if favour[k] > 0:
+            for unit in objects.get(k) or (f"#{k:09d}",):
+                total[unit] = total.get(unit, 0.0) + math.log(size[k]) * favour[k]
+    if not total:
+        return common
+    top = min(total, key=lambda u: (-total[u], u))
+    return [k for k in common if not (favour[k] > 0 and top in (objects.get(k) or (f"#{k:09d}",)))]
+
+
+def _patch_objects(description: SceneDescription, model: SceneModel, predictions: list[Prediction],
+                   share: float, movable: bool) -> dict[int, frozenset[str]]:
+    """The movable objects (kinds other than :data:`.icp.STABLE_KINDS`; with ``movable`` False, the stable ones)
+    each patch sees: those the model predicts over at least ``share`` of its pixels (on the prediction's grid)
+    from any of ``predictions``' poses - the object at the patch's place, or in front of it."""
+    out: dict[int, set[str]] = {}
+    for pred in predictions:
+        s, o = pred.stride, pred.offset
+        h, w = pred.range.shape
+        lab = description.labels[o::s, o::s][:h, :w].ravel()
+        owner = np.array([model.object_of(sf.feature_id) for sf in pred.surfaces] + [""], dtype=object)
+        kept = np.array([o_ != "" and (model.object(o_).kind not in STABLE_KINDS) == movable for o_ in owner])
+        sid = pred.surface_id.ravel()
+        sel = (lab >= 0) & kept[sid]
+        if not sel.any():
+            continue
+        n_lab = int(lab.max()) + 1
+        total = np.bincount(lab[lab >= 0], minlength=n_lab)
+        pairs, counts = np.unique(np.stack([lab[sel], sid[sel]]), axis=1, return_counts=True)
+        per: dict[tuple[int, str], int] = {}
+        for (k, sf), c in zip(pairs.T.tolist(), counts.tolist(), strict=True):
+            per[(k, owner[sf])] = per.get((k, owner[sf]), 0) + c
+        for (k, obj), c in per.items():
+            if c >= share * total[k]:
+                out.setdefault(k, set()).add(obj)
+    return {k: frozenset(v) for k, v in out.items()}
 
 
 def free_translation(free_dof: int, free_basis: np.ndarray) -> np.ndarray | None:
@@ -594,6 +660,51 @@ def _disagreeing_alternative(description: SceneDescription, scan: Scan, model: S
         description, f_final, f_alt, params.separation_leave_out, params.separation_leave_out)))
 
 
+def _stable_alternative(description: SceneDescription, scan: Scan, model: SceneModel, model_simulator,
+                             final: tuple[Prediction, float, dict[int, float]], params: LocaliseParams,
+                             timing: dict[str, float], scale: float) -> PoseAlternative | None:
+    """The pose that the stable structure the final pose leaves unexplained asks for, as an alternative to it.
+
+    :func:`_disagreeing_alternative` for the disagreeing patches that see a floor or a wall (the model predicts
+    one of :data:`.icp.STABLE_KINDS` over at least ``params.object_share`` of their pixels at the final pose)
+    and no movable object (whose old place, moved away, would leave them unexplained at the right pose), which
+    no perturbation moves: a wall left unexplained while a moved tank holds the pose. They are registered
+    alone by ICP from ``T_final`` against the model predicted there (first reach ``params.stable_reach`` of the
+    range), moving the pose only in the directions they fix (:func:`.icp.icp_fixed_directions`: a wall alone
+    fixes three), then the whole view by the final ICP from there; that pose is returned with its separation
+    from the final pose when it is materially different. When the wall is the change seen wrongly (the final
+    pose right), the whole view brings the pose back or misplaces the rest and the data separate the two. One
+    moved object carries neither side: the separation leaves out, on each side, the patches of the one movable
+    object (all the patches that see it at either pose: its own, and those its old place hides) or the one lone
+    patch that favours that side most.
+    None without such patches, when their ICP fails, or when their pose is the final one. ``final``: the final
+    pose's :func:`_verified`.
+    """
+    pred, _, f_final = final
+    T_final = pred.T_world_sensor
+    by_id = {p.id: p for p in description.patches}
+    stable = _patch_objects(description, model, [pred], params.object_share, movable=False)
+    movable = _patch_objects(description, model, [pred], params.object_share, movable=True)
+    asking = [by_id[k] for k, fr in sorted(f_final.items()) if fr < params.disagree_fraction and k in by_id
+              and stable.get(k) and not movable.get(k)]
+    if not asking:
+        return None
+    t0 = time.perf_counter()
+    ir = icp_fixed_directions(scan, pred, model, T_final, _pixels_of(description, asking),
+                              params.stable_reach * scale, params.icp)
+    if ir.ok:  # then the whole view from there, as the final pose was refined: the rest follows if it can
+        whole = icp_refine(scan, predict(model_simulator, scan.sensor, ir.T_world_sensor, params.verify.stride),
+                           model, ir.T_world_sensor, params.icp)
+        ir = whole if whole.ok else ir
+    timing["icp"] += time.perf_counter() - t0
+    if not ir.ok or not _materially_different(ir.T_world_sensor, T_final, scale, params):
+        return None
+    pred_alt, a_alt, f_alt = _verified(description, scan, model_simulator, ir.T_world_sensor, params, timing)
+    objects = _patch_objects(description, model, [pred, pred_alt], params.object_share, movable=True)
+    return PoseAlternative(ir.T_world_sensor, a_alt, separation_z(*agreement_separation(
+        description, f_final, f_alt, objects=objects)))
+
+
 def _confidence(z: float) -> float:
     """The confidence of a pose verdict from its least separation ``z`` (from a probe at the tolerance or an
     alternative): ``Phi(z)``, the probability that a difference measured ``z`` standard errors above 0 is
@@ -760,9 +871,10 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
     if start is not None and distinct(start.T_world_sensor, []):
         alternatives.append(start)
     if params.use_icp and params.disagree_fraction > 0:
-        asked = _disagreeing_alternative(description, scan, model, model_simulator, final_v, params, timing, scale)
-        if asked is not None and distinct(asked.T_world_sensor, []):
-            alternatives.append(asked)
+        for ask in (_disagreeing_alternative, _stable_alternative):
+            asked = ask(description, scan, model, model_simulator, final_v, params, timing, scale)
+            if asked is not None and distinct(asked.T_world_sensor, []):
+                alternatives.append(asked)
     pairs = {patch_ids[i]: (str(el.feature_id[e]) if e >= 0 else None) for i, e in best.pairs}
     # prediction at the final pose (shared with change detection) and the final confidence
     t0 = time.perf_counter()

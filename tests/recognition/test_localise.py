@@ -372,3 +372,101 @@ def test_the_pose_the_unexplained_patches_ask_for_is_an_alternative():
     off = np.linalg.norm(held_alt.T_world_sensor[:3, 3] - T[:3, 3])
     assert off < 0.5 * np.linalg.norm(held[:3, 3] - T[:3, 3])  # the rest's pose is near the true one...
     assert held_alt.separation < params.separation_z  # ... and the data do not prefer the held pose to it
+
+
+def test_the_pose_the_unexplained_wall_asks_for_is_an_alternative():
+    """The room of the test above, its cabinet moved 10 cm towards the camera. From the pose the cabinet holds,
+    the wall and the floor are left unexplained: the stable structure's alternative (the wall registered alone in
+    the directions it fixes, then the whole view) is near the true pose and the held pose is not separated from
+    it; the moved cabinet's patches count on neither side. From the right pose only the moved cabinet disagrees,
+    which is not stable structure: no such alternative."""
+    import importlib
+
+    from recognition.describe import describe
+    from recognition.localisation.prediction import predict
+    from scenes import builders
+    from scenes.model import SceneModel
+    from sensors.noise import NoiseModel
+    from sensors.range_image import Scan
+    from sensors.simulate import Simulator
+
+    localise_module = importlib.import_module("recognition.localisation.localise")
+
+    def room(cab_a_y: float) -> SceneModel:
+        objects = [builders.floor("floor", 12.0, 12.0), builders.wall("wall", (0.0, 3.1, 0.0), 0.0, 10.0, 2.5, 0.2),
+                   builders.cabinet("cab_a", (-0.4, cab_a_y, 0.0), 0.0, (0.6, 0.6, 1.5))]
+        objects += [builders.cabinet(f"cab_{k}", (x, 2.6, 0.0), 0.4 * x, (0.5, 0.4, 0.5 + 0.3 * k))
+                    for k, x in enumerate((-2.2, -1.3, 0.6, 1.5, 2.4))]
+        return SceneModel("room", tuple(objects))
+
+    actual, model = room(2.5), room(2.6)
+    T = np.eye(4)
+    T[:3, :3] = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])
+    T[:3, 3] = [0.0, -1.0, 1.2]
+    cam = PinholeCamera.from_fov(160, 120, 70.0, min_range=0.3, max_range=20.0)
+    seen = predict(Simulator.from_scene(actual), cam, T, 1)
+    scan = Scan(range=seen.range, points=seen.points_sensor(), sensor=cam, noise=NoiseModel(enabled=False))
+    desc, sim = describe(scan), Simulator.from_scene(model)
+    params = LocaliseParams()
+    held = T.copy()
+    held[:3, 3] += [0.0, 0.1, 0.0]
+    found = {}
+    for name, T_final in (("right", T), ("held", held)):
+        timing = {"verification": 0.0, "icp": 0.0}
+        final = localise_module._verified(desc, scan, sim, T_final, params, timing)
+        found[name] = localise_module._stable_alternative(desc, scan, model, sim, final, params, timing, 3.0)
+    assert found["right"] is None
+    alt = found["held"]
+    assert alt is not None
+    assert np.linalg.norm(alt.T_world_sensor[:3, 3] - T[:3, 3]) < 0.02
+    assert alt.separation < params.separation_z
+
+
+def test_icp_on_a_wall_alone_moves_the_pose_only_in_the_directions_the_wall_fixes():
+    """A wall's points registered from a pose 10 cm off along its normal and 20 cm along it: the pose comes onto
+    the wall (its normal offset and tilts fixed) and keeps the 20 cm along it, which a wall cannot fix - an
+    unconstrained ICP would drift there until nothing corresponds."""
+    from recognition.localisation.icp import icp_fixed_directions
+    from recognition.localisation.prediction import predict
+    from scenes import builders
+    from scenes.model import SceneModel
+    from sensors.noise import NoiseModel
+    from sensors.range_image import Scan
+    from sensors.simulate import Simulator
+
+    model = SceneModel("room", (builders.floor("floor", 12.0, 12.0),
+                                builders.wall("wall", (0.0, 3.1, 0.0), 0.0, 10.0, 2.5, 0.2)))
+    T = np.eye(4)
+    T[:3, :3] = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])  # looking along +y at the wall
+    T[:3, 3] = [0.0, -1.0, 1.2]
+    cam = PinholeCamera.from_fov(160, 120, 70.0, min_range=0.3, max_range=20.0)
+    sim = Simulator.from_scene(model)
+    seen = predict(sim, cam, T, 1)
+    scan = Scan(range=seen.range, points=seen.points_sensor(), sensor=cam, noise=NoiseModel(enabled=False))
+    wall = np.array([s.feature_id.startswith("wall") for s in seen.surfaces] + [False])[seen.surface_id]
+    start = T.copy()
+    start[:3, 3] += [0.2, 0.1, 0.0]  # 20 cm along the wall, 10 cm towards it
+    res = icp_fixed_directions(scan, predict(sim, cam, start, 2), model, start, wall, reach_m=0.5)
+    assert res.ok and res.free_dof == 3
+    assert res.T_world_sensor[1, 3] == pytest.approx(T[1, 3], abs=1e-3)  # onto the wall
+    assert res.T_world_sensor[0, 3] == pytest.approx(start[0, 3], abs=1e-3)  # along it: where it started
+    assert np.allclose(res.T_world_sensor[:3, :3], T[:3, :3], atol=1e-3)
+
+
+def test_the_separation_leaves_out_the_patches_of_the_one_object_that_most_favours_a_side():
+    """Patches 1 and 2 are one moved tank's (and patch 3 sees its old place): together they favour A; patch 4, a
+    wall, favours B. Patch by patch, leaving out one (patch 1) keeps A ahead; by object, the tank's three
+    patches go and B is ahead; B's one unit, the lone patch 4, goes too."""
+    from types import SimpleNamespace
+
+    from recognition.localisation.localise import agreement_separation
+
+    desc = SimpleNamespace(patches=[SimpleNamespace(id=k, n_pixels=1000) for k in range(1, 7)])
+    a = {1: 1.0, 2: 1.0, 3: 1.0, 4: 0.0, 5: 0.9, 6: 0.9}
+    b = {1: 0.1, 2: 0.2, 3: 0.3, 4: 1.0, 5: 1.0, 6: 1.0}
+    objects = {1: frozenset({"tank"}), 2: frozenset({"tank"}), 3: frozenset({"tank", "cab"})}
+    d_patch, _ = agreement_separation(desc, a, b, leave_out=1)
+    assert d_patch == pytest.approx((0.8 + 0.7 - 1.0 - 0.1 - 0.1) / 5)
+    d_object, _ = agreement_separation(desc, a, b, objects=objects)
+    assert d_object == pytest.approx((-0.1 - 0.1) / 2)
+    assert d_patch > 0 > d_object
