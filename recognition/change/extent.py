@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
+from recognition.localisation.pose import skew
 from scenes.features import Cylinder, Feature, Plane
 
 GROWN, SHRUNK = "grown", "shrunk"
@@ -201,10 +202,10 @@ def outgrows(f: Plane, pts: np.ndarray, normal: np.ndarray, margin_m: float, tol
 
 def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The least rotation (3, 3) taking unit vector ``a`` to unit vector ``b`` (Rodrigues)."""
-    v, c = np.cross(a, b), float(a @ b)
+    c = float(a @ b)
     if c < -1 + 1e-12:
         raise ValueError("opposite vectors: no least rotation")
-    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    K = skew(np.cross(a, b))
     return np.eye(3) + K + K @ K / (1 + c)
 
 

@@ -381,7 +381,7 @@ def agreement_separation(description: SceneDescription, fractions_a: dict[int, f
     if leave_out_b > 0 and common:
         favour_b = sorted(common, key=lambda k: (fractions_a[k] - fractions_b[k], -size[k], k))
         common = sorted(favour_b[leave_out_b:])
-    if objects:  # and the patches of the one movable object that most favours each side
+    if objects:  # and the patches of the one movable object (or lone patch) that most favours each side
         for sign in (1.0, -1.0):
             common = _without_object(common, objects, {k: sign * (fractions_a[k] - fractions_b[k]) for k in common},
                                      size)
@@ -399,7 +399,7 @@ def _without_object(common: list[int], objects: dict[int, frozenset[str]], favou
                     size: dict[int, int]) -> list[int]:
     """``common`` without the patches favouring a side (``favour`` > 0) of the one unit whose weighted favour to
     that side is the largest: a movable object (``objects``: all the patches that see it) or a patch that sees
-    none (ties: the larger favour's unit name, objects by name, lone patches by id)."""
+    none (ties: objects by name, then lone patches by id)."""
     total: dict[str, float] = {}
     for k in common:
         if favour[k] > 0:
@@ -411,32 +411,31 @@ def _without_object(common: list[int], objects: dict[int, frozenset[str]], favou
     return [k for k in common if not (favour[k] > 0 and top in (objects.get(k) or (f"#{k:09d}",)))]
 
 
-def _patch_objects(description: SceneDescription, model: SceneModel, predictions: list[Prediction],
-                   share: float, movable: bool) -> dict[int, frozenset[str]]:
-    """The movable objects (kinds other than :data:`.icp.STABLE_KINDS`; with ``movable`` False, the stable ones)
-    each patch sees: those the model predicts over at least ``share`` of its pixels (on the prediction's grid)
-    from any of ``predictions``' poses - the object at the patch's place, or in front of it."""
+def _patch_objects(description: SceneDescription, model: SceneModel, pred: Prediction,
+                   share: float) -> dict[int, frozenset[str]]:
+    """The model objects each patch sees from ``pred``'s pose: those the model predicts over at least ``share``
+    of the patch's pixels (on the prediction's grid) - the object at the patch's place, or in front of it."""
+    s, o = pred.stride, pred.offset
+    h, w = pred.range.shape
+    lab = description.labels[o::s, o::s][:h, :w].ravel()
+    names = sorted({model.object_of(sf.feature_id) for sf in pred.surfaces})
+    index = {n: i for i, n in enumerate(names)}
+    obj = np.array([index[model.object_of(sf.feature_id)] for sf in pred.surfaces] + [-1])[pred.surface_id.ravel()]
+    sel = (lab >= 0) & (obj >= 0)
+    if not sel.any():
+        return {}
+    total = np.bincount(lab[lab >= 0])
+    pairs, counts = np.unique(np.stack([lab[sel], obj[sel]]), axis=1, return_counts=True)
     out: dict[int, set[str]] = {}
-    for pred in predictions:
-        s, o = pred.stride, pred.offset
-        h, w = pred.range.shape
-        lab = description.labels[o::s, o::s][:h, :w].ravel()
-        owner = np.array([model.object_of(sf.feature_id) for sf in pred.surfaces] + [""], dtype=object)
-        kept = np.array([o_ != "" and (model.object(o_).kind not in STABLE_KINDS) == movable for o_ in owner])
-        sid = pred.surface_id.ravel()
-        sel = (lab >= 0) & kept[sid]
-        if not sel.any():
-            continue
-        n_lab = int(lab.max()) + 1
-        total = np.bincount(lab[lab >= 0], minlength=n_lab)
-        pairs, counts = np.unique(np.stack([lab[sel], sid[sel]]), axis=1, return_counts=True)
-        per: dict[tuple[int, str], int] = {}
-        for (k, sf), c in zip(pairs.T.tolist(), counts.tolist(), strict=True):
-            per[(k, owner[sf])] = per.get((k, owner[sf]), 0) + c
-        for (k, obj), c in per.items():
-            if c >= share * total[k]:
-                out.setdefault(k, set()).add(obj)
+    for (k, i), c in zip(pairs.T.tolist(), counts.tolist(), strict=True):
+        if c >= share * total[k]:
+            out.setdefault(k, set()).add(names[i])
     return {k: frozenset(v) for k, v in out.items()}
+
+
+def _movable(model: SceneModel, objects: frozenset[str]) -> frozenset[str]:
+    """The movable ones (kinds other than :data:`.icp.STABLE_KINDS`) of model ``objects``."""
+    return frozenset(o for o in objects if model.object(o).kind not in STABLE_KINDS)
 
 
 def free_translation(free_dof: int, free_basis: np.ndarray) -> np.ndarray | None:
@@ -661,8 +660,8 @@ def _disagreeing_alternative(description: SceneDescription, scan: Scan, model: S
 
 
 def _stable_alternative(description: SceneDescription, scan: Scan, model: SceneModel, model_simulator,
-                             final: tuple[Prediction, float, dict[int, float]], params: LocaliseParams,
-                             timing: dict[str, float], scale: float) -> PoseAlternative | None:
+                        final: tuple[Prediction, float, dict[int, float]], params: LocaliseParams,
+                        timing: dict[str, float], scale: float) -> PoseAlternative | None:
     """The pose that the stable structure the final pose leaves unexplained asks for, as an alternative to it.
 
     :func:`_disagreeing_alternative` for the disagreeing patches that see a floor or a wall (the model predicts
@@ -683,10 +682,9 @@ def _stable_alternative(description: SceneDescription, scan: Scan, model: SceneM
     pred, _, f_final = final
     T_final = pred.T_world_sensor
     by_id = {p.id: p for p in description.patches}
-    stable = _patch_objects(description, model, [pred], params.object_share, movable=False)
-    movable = _patch_objects(description, model, [pred], params.object_share, movable=True)
+    seen = _patch_objects(description, model, pred, params.object_share)
     asking = [by_id[k] for k, fr in sorted(f_final.items()) if fr < params.disagree_fraction and k in by_id
-              and stable.get(k) and not movable.get(k)]
+              and seen.get(k) and not _movable(model, seen[k])]
     if not asking:
         return None
     t0 = time.perf_counter()
@@ -700,7 +698,11 @@ def _stable_alternative(description: SceneDescription, scan: Scan, model: SceneM
     if not ir.ok or not _materially_different(ir.T_world_sensor, T_final, scale, params):
         return None
     pred_alt, a_alt, f_alt = _verified(description, scan, model_simulator, ir.T_world_sensor, params, timing)
-    objects = _patch_objects(description, model, [pred, pred_alt], params.object_share, movable=True)
+    seen_alt = _patch_objects(description, model, pred_alt, params.object_share)
+    objects = {}  # the movable objects each patch sees at either pose
+    for k in seen.keys() | seen_alt.keys():
+        if movable := _movable(model, seen.get(k, frozenset()) | seen_alt.get(k, frozenset())):
+            objects[k] = movable
     return PoseAlternative(ir.T_world_sensor, a_alt, separation_z(*agreement_separation(
         description, f_final, f_alt, objects=objects)))
 

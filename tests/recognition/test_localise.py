@@ -325,12 +325,10 @@ def test_a_pose_resting_on_one_movable_object_is_not_ok(monkeypatch):
     assert localise(desc, scan, model, LocaliseParams(max_free_without_one=4), model_simulator=sim).ok
 
 
-def test_the_pose_the_unexplained_patches_ask_for_is_an_alternative():
-    """Issue 34: a moved cabinet can hold a pose, and the unchanged surfaces are then the ones left unexplained.
-    The patches a pose leaves unexplained are registered alone: from the right pose they are the moved cabinet,
-    whose pose misplaces the wall and the floor (well separated: the verdict stands); from the pose the cabinet
-    holds they are the wall, the floor and the other cabinet, whose pose is the true one (the data prefer it:
-    not separated, so the held pose cannot be called ok)."""
+def _alternatives_in_a_room_with_a_moved_cabinet(name: str):
+    """A room (a floor, a wall, six cabinets) whose cabinet ``cab_a`` stands 10 cm nearer the camera than the
+    model has it, seen from the true pose ``T``; the alternative ``localise.<name>`` finds from ``T`` and from the
+    pose the cabinet holds (the camera 10 cm further along y). Returns ``(right, held_alt, T, held, params)``."""
     import importlib
 
     from recognition.describe import describe
@@ -342,6 +340,7 @@ def test_the_pose_the_unexplained_patches_ask_for_is_an_alternative():
     from sensors.simulate import Simulator
 
     localise_module = importlib.import_module("recognition.localisation.localise")
+    ask = getattr(localise_module, name)
 
     def room(cab_a_y: float) -> SceneModel:
         objects = [builders.floor("floor", 12.0, 12.0), builders.wall("wall", (0.0, 3.1, 0.0), 0.0, 10.0, 2.5, 0.2),
@@ -361,12 +360,21 @@ def test_the_pose_the_unexplained_patches_ask_for_is_an_alternative():
     params = LocaliseParams()
     held = T.copy()
     held[:3, 3] += [0.0, 0.1, 0.0]  # the camera 10 cm further along y: cab_a where the model has it
-    found = {}
-    for name, T_final in (("right", T), ("held", held)):
+    found = []
+    for T_final in (T, held):
         timing = {"verification": 0.0, "icp": 0.0}
         final = localise_module._verified(desc, scan, sim, T_final, params, timing)
-        found[name] = localise_module._disagreeing_alternative(desc, scan, model, sim, final, params, timing, 3.0)
-    right, held_alt = found["right"], found["held"]
+        found.append(ask(desc, scan, model, sim, final, params, timing, 3.0))
+    return found[0], found[1], T, held, params
+
+
+def test_the_pose_the_unexplained_patches_ask_for_is_an_alternative():
+    """Issue 34: a moved cabinet can hold a pose, and the unchanged surfaces are then the ones left unexplained.
+    The patches a pose leaves unexplained are registered alone: from the right pose they are the moved cabinet,
+    whose pose misplaces the wall and the floor (well separated: the verdict stands); from the pose the cabinet
+    holds they are the wall, the floor and the other cabinet, whose pose is the true one (the data prefer it:
+    not separated, so the held pose cannot be called ok)."""
+    right, held_alt, T, held, params = _alternatives_in_a_room_with_a_moved_cabinet("_disagreeing_alternative")
     assert right is not None and held_alt is not None
     assert right.separation > params.separation_z  # the cabinet's pose misplaces the rest: the right pose stands
     off = np.linalg.norm(held_alt.T_world_sensor[:3, 3] - T[:3, 3])
@@ -375,51 +383,15 @@ def test_the_pose_the_unexplained_patches_ask_for_is_an_alternative():
 
 
 def test_the_pose_the_unexplained_wall_asks_for_is_an_alternative():
-    """The room of the test above, its cabinet moved 10 cm towards the camera. From the pose the cabinet holds,
-    the wall and the floor are left unexplained: the stable structure's alternative (the wall registered alone in
-    the directions it fixes, then the whole view) is near the true pose and the held pose is not separated from
-    it; the moved cabinet's patches count on neither side. From the right pose only the moved cabinet disagrees,
-    which is not stable structure: no such alternative."""
-    import importlib
-
-    from recognition.describe import describe
-    from recognition.localisation.prediction import predict
-    from scenes import builders
-    from scenes.model import SceneModel
-    from sensors.noise import NoiseModel
-    from sensors.range_image import Scan
-    from sensors.simulate import Simulator
-
-    localise_module = importlib.import_module("recognition.localisation.localise")
-
-    def room(cab_a_y: float) -> SceneModel:
-        objects = [builders.floor("floor", 12.0, 12.0), builders.wall("wall", (0.0, 3.1, 0.0), 0.0, 10.0, 2.5, 0.2),
-                   builders.cabinet("cab_a", (-0.4, cab_a_y, 0.0), 0.0, (0.6, 0.6, 1.5))]
-        objects += [builders.cabinet(f"cab_{k}", (x, 2.6, 0.0), 0.4 * x, (0.5, 0.4, 0.5 + 0.3 * k))
-                    for k, x in enumerate((-2.2, -1.3, 0.6, 1.5, 2.4))]
-        return SceneModel("room", tuple(objects))
-
-    actual, model = room(2.5), room(2.6)
-    T = np.eye(4)
-    T[:3, :3] = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]])
-    T[:3, 3] = [0.0, -1.0, 1.2]
-    cam = PinholeCamera.from_fov(160, 120, 70.0, min_range=0.3, max_range=20.0)
-    seen = predict(Simulator.from_scene(actual), cam, T, 1)
-    scan = Scan(range=seen.range, points=seen.points_sensor(), sensor=cam, noise=NoiseModel(enabled=False))
-    desc, sim = describe(scan), Simulator.from_scene(model)
-    params = LocaliseParams()
-    held = T.copy()
-    held[:3, 3] += [0.0, 0.1, 0.0]
-    found = {}
-    for name, T_final in (("right", T), ("held", held)):
-        timing = {"verification": 0.0, "icp": 0.0}
-        final = localise_module._verified(desc, scan, sim, T_final, params, timing)
-        found[name] = localise_module._stable_alternative(desc, scan, model, sim, final, params, timing, 3.0)
-    assert found["right"] is None
-    alt = found["held"]
-    assert alt is not None
-    assert np.linalg.norm(alt.T_world_sensor[:3, 3] - T[:3, 3]) < 0.02
-    assert alt.separation < params.separation_z
+    """The same room. From the pose the cabinet holds, the wall and the floor are left unexplained: the stable
+    structure's alternative (the wall registered alone in the directions it fixes, then the whole view) is near
+    the true pose and the held pose is not separated from it; the moved cabinet's patches count on neither side.
+    From the right pose only the moved cabinet disagrees, which is not stable structure: no such alternative."""
+    right, held_alt, T, _, params = _alternatives_in_a_room_with_a_moved_cabinet("_stable_alternative")
+    assert right is None
+    assert held_alt is not None
+    assert np.linalg.norm(held_alt.T_world_sensor[:3, 3] - T[:3, 3]) < 0.02
+    assert held_alt.separation < params.separation_z
 
 
 def test_icp_on_a_wall_alone_moves_the_pose_only_in_the_directions_the_wall_fixes():
