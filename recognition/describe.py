@@ -212,7 +212,11 @@ def describe(scan: Scan, params: DescribeParams = DescribeParams(),
     # without range noise in the model (exact ranges) there is no sigma to compare the scatter with
     check_support = params.max_local_scatter is not None and bool(getattr(scan.noise, "has_range_noise", True))
 
+    support = None if segmentation.support is None else segmentation.support.ravel()
+
     def classify(pix: np.ndarray, surface_type: SurfaceType, interior: np.ndarray | None) -> PatchClassification:
+        if support is not None:  # not the pixels the border completion added (Segmentation.support)
+            pix = pix[support[pix]]
         if len(pix) < params.min_classify_pixels:
             return _too_small(len(pix))
         if check_support:

@@ -36,7 +36,8 @@ fitted to each. The steps here:
    union (plane for two planar patches, quadric otherwise) has an RMS range residual within ``merge_k``
    sigma; small fragments lying wholly inside one other patch are merged into it (the Hoover metric counts
    them as over-segmentation otherwise), and small pieces cut off by jumps (grazing limbs) join the patch
-   across the jump whose surface fits them. Small and noisy patches are kept and flagged, never dropped.
+   across the jump whose surface fits them. Small and noisy patches are kept and flagged (step 10 drops
+   the small fragments that are left at the end).
 
 What the simulated suites (mixed pixels, outliers, grazing dropouts, incidence-dependent noise) added:
 
@@ -68,7 +69,15 @@ What the simulated suites (mixed pixels, outliers, grazing dropouts, incidence-d
 10. **Hoover-literal hygiene**: fragments under ``min_region_pixels`` join a bordering patch whose surface
    fits them; pixels with at most two 4-neighbours in their own patch are left unlabelled (mixed pixels
    and one-pixel slivers of other surfaces at corners: the metric counts a patch that wholly covers a
-   one-pixel truth region as an under-segmentation).
+   one-pixel truth region as an under-segmentation); patches still under ``min_kept_pixels`` (100) are
+   left unlabelled too, but small objects in front of their surroundings: fragments that fit no neighbour,
+   which the metric counts as over-segmentations of the surface they lie on.
+11. **Border completion** (:func:`_complete_borders`): an unlabelled pixel with a return joins the linked patch
+   (of ``min_region_pixels`` or more) whose surface fits it within ``complete_k`` sigma and whose normal
+   agrees with its own, for two rings of pixels: the limb bands of thin pipes and the borders the coarse grid
+   did not reach. The pixels given are the patch's extent, not its support: its fit and classification rest on
+   the others (:attr:`Segmentation.support`). On the calibration suite, correct detection 0.761 -> 0.791 with
+   the classification unchanged.
 
 The segmenter reads only the point image and the per-pixel sigma; never any ground truth.
 
@@ -76,7 +85,8 @@ Layout: one module per step, run in this order by :func:`segment` (:mod:`.pipeli
 which steps run for which image size): :mod:`.edges` (returns, jump pairs, the noise self-calibration; 4, 6),
 :mod:`.curvature` with :mod:`.derivatives` (1-4), :mod:`.seeds` and :mod:`.growing` (5, 8), :mod:`.merging` (5),
 then on decimated grids only :mod:`.refinement` (7), :mod:`.merging` again, :mod:`.splits` (8) and
-:mod:`.reassignment` (9); finally :mod:`.peel` (10) and :mod:`.final_fits`. :mod:`.grid` and :mod:`.quick_fits`
+:mod:`.reassignment` (9); finally :mod:`.peel` (10), the border completion of :mod:`.reassignment` (11) and
+:mod:`.final_fits`. :mod:`.grid` and :mod:`.quick_fits`
 hold what the steps share (pixel groups, adjacency; the batched plane and quadric fits that test growth, merges
 and splits), :mod:`.types` the parameters and results, :mod:`.kernels` the compiled (numba) inner loops that
 the steps call: growing, residuals, pixel groups, jump pairs, the derivatives and curvatures, the quick fits,

@@ -1,6 +1,7 @@
 """Segmentation step 10, Hoover-literal hygiene: pixels with at most two 4-neighbours in their own patch are
 left unlabelled (mixed returns and one-pixel slivers where a patch meets another surface; the paper's patches
-are the maximal sets one surface fits, section 3 of Fillatreau & Fisher)."""
+are the maximal sets one surface fits, section 3 of Fillatreau & Fisher), and so are the fragments too small to
+be a surface of their own (:func:`_drop_fragments`)."""
 
 from __future__ import annotations
 
@@ -50,3 +51,35 @@ def _peel_weak(labels: np.ndarray, params: SegmentationParams, jump_h: np.ndarra
             & (np.bincount(labels[weak & row_end], minlength=sizes.size) >= params.stair_fraction * n_weak))
     return np.where(weak & ~(thin[lab] & row_end), -1, labels).astype(np.int32)
 
+
+
+def _drop_fragments(labels: np.ndarray, params: SegmentationParams, rng: np.ndarray, jump_h: np.ndarray,
+                    jump_v: np.ndarray) -> np.ndarray:
+    """Unlabel the patches of fewer than ``min_kept_pixels`` pixels, but small objects on their own (none when
+    ``min_kept_pixels`` is None).
+
+    What is left of that size after merging and the fragment absorption (:func:`._absorb_fragments`) fits
+    none of its neighbours: flecks of misclassified curvature among a wall's grazing dropouts, the transition
+    band along a crease, mixed pixels at a limb. Too few pixels to tell a surface from noise, they are no
+    region: Hoover's metric counts a fragment lying in a surface's region as an over-segmentation of it, and a
+    patch of this size can be no scored region's (200 pixels or more). A small patch in front of everything
+    around it (every neighbour with a return across a jump and farther) is a small object, not a fragment of a
+    surface, and stays.
+
+    ``rng``: (H, W) range of each pixel (NaN where no return).
+    """
+    if params.min_kept_pixels is None:
+        return labels
+    sizes = np.bincount(labels[labels >= 0], minlength=1)
+    small = sizes < params.min_kept_pixels
+    if not small.any():
+        return labels
+    # a patch is a fragment when a neighbour with a return (not its own) is on its surface (no jump) or nearer
+    fragment = np.zeros(sizes.size, bool)
+    for a, b, ra, rb, j in ((labels[:, :-1], labels[:, 1:], rng[:, :-1], rng[:, 1:], jump_h),
+                            (labels[:-1, :], labels[1:, :], rng[:-1, :], rng[1:, :], jump_v)):
+        m = (a != b) & np.isfinite(ra) & np.isfinite(rb)
+        fragment[a[m & (a >= 0) & (~j | (rb < ra))]] = True
+        fragment[b[m & (b >= 0) & (~j | (ra < rb))]] = True
+    drop = small & fragment
+    return np.where((labels >= 0) & drop[np.maximum(labels, 0)], -1, labels).astype(np.int32)

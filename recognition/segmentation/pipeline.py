@@ -16,8 +16,8 @@ from .final_fits import _finalise
 from .grid import _Grid, _neighbour_links, _upsampler
 from .growing import _grow_patches
 from .merging import _merge, _merge_patches
-from .peel import _peel_weak
-from .reassignment import _reassign
+from .peel import _drop_fragments, _peel_weak
+from .reassignment import _complete_borders, _reassign
 from .refinement import _refine_full
 from .seeds import _seeds
 from .splits import _split_patches
@@ -40,8 +40,8 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
     steps : dict, optional
         Receives the process time (s) of each step, added to what it holds under the step's name (``edges``,
         ``curvature``, ``seeds``, ``growing``, ``merging`` on the segmentation grid, then ``full resolution``,
-        ``merging at full resolution``, ``splits``, ``reassignment``, ``peel``, ``final fits``): where a
-        frame's time goes, for ``python -m harness.bench.segmentation --steps``.
+        ``merging at full resolution``, ``splits``, ``reassignment``, ``peel``, ``border completion``,
+        ``final fits``): where a frame's time goes, for ``python -m harness.bench.segmentation --steps``.
 
     Returns
     -------
@@ -106,10 +106,15 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
     edges = _edge_image(shape, full.jump_h, full.jump_v)
     edges[crease] |= np.uint8(EdgeType.CREASE)
     labels = _peel_weak(labels, params, full.jump_h, full.jump_v)  # 10
+    labels = _drop_fragments(labels, params, np.linalg.norm(pts, axis=2), full.jump_h, full.jump_v)  # 10
     lap("peel")
-    labels, patches = _finalise(labels, st, params, declared.ravel())  # plane / quadric fit of each patch
+    support = labels >= 0  # what the fits rest on: not the pixels the completion adds
+    labels = _complete_borders(labels, st, params, links, cur.normals.reshape(-1, 3))  # 11
+    lap("border completion")
+    labels, patches = _finalise(labels, st, params, declared.ravel(), support.ravel())  # plane / quadric fits
     lap("final fits")
-    return Segmentation(labels, hk, cur.H, cur.K, cur.sigma_H, cur.sigma_K, cur.normals, edges, patches, scale)
+    return Segmentation(labels, hk, cur.H, cur.K, cur.sigma_H, cur.sigma_K, cur.normals, edges, patches, scale,
+                        support)
 
 
 def _check_inputs(points: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

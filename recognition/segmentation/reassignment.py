@@ -1,10 +1,13 @@
 """Segmentation step 9 (decimated grids only), border reassignment: a border pixel moves to the neighbouring
 patch whose surface fits it clearly better (the paper's patches are maximal sets one surface fits, section 3 of
-Fillatreau & Fisher; the coarse grid's blocks and tiles leave borders a few pixels off)."""
+Fillatreau & Fisher; the coarse grid's blocks and tiles leave borders a few pixels off); and step 11, border
+completion (:func:`_complete_borders`: unlabelled pixels join the linked patch whose surface fits them)."""
 
 from __future__ import annotations
 
 import numpy as np
+
+from recognition.fitting.algebra import gradient
 
 from .grid import _groups, _State
 from .quick_fits import _fit_groups, _pixel_residuals
@@ -91,4 +94,71 @@ def _reassign(labels: np.ndarray, st: _State, params: SegmentationParams, links,
             P[keys] = Pc[keys]
         nxt = (moved[None, :] + steps[:, None])[ok[:, moved]]
         cand = np.union1d(cand, nxt[flat[nxt] >= 0])
+    return out
+
+
+def _complete_borders(labels: np.ndarray, st: _State, params: SegmentationParams, links,
+                      normals: np.ndarray) -> np.ndarray:
+    """Give unlabelled pixels with a return to the linked patch whose surface fits them best (returns new
+    labels).
+
+    Growing admits a pixel within ``grow_k`` sigma of a patch's surface as it stands during growing; the peel
+    and the fragment drop then leave borders and limbs unlabelled: the band along a thin pipe's limbs (where a
+    quadric fitted to a few pixels across errs most along the grazing rays), the border of a face the
+    coarse grid's blocks did not reach, the pixels of a dropped fragment. Each round, every unlabelled pixel
+    with a return linked (no jump) to a patch of ``min_region_pixels`` or more joins the one whose trimmed
+    fit (:func:`._fit_groups`, fitted once, so that a patch cannot creep along its own extrapolation) leaves
+    it the smallest range residual, when that is within ``complete_k`` sigma and its normal (where defined) is
+    within ``face_min_angle_deg`` of the surface's there (near a crease the neighbouring face's pixels fit the
+    face's plane within the noise: a far box's faces, a wall's top seen at grazing); at most
+    ``complete_rounds`` rounds, a ring of pixels each. A smaller patch's fit does not extrapolate, and grown
+    past that size it would be scored and classified on pixels it did not grow to. The pixels given stay out
+    of the patch's fit and classification (:attr:`Segmentation.support`). ``links``:
+    :func:`._neighbour_links` of the image; ``normals`` (H*W, 3) the pixels' unit normals
+    (NaN where undefined). Off when ``complete_k`` is None.
+    """
+    if params.complete_k is None:
+        return labels
+    H, W = labels.shape
+    out = labels.copy()
+    flat = out.ravel()
+    n = int(flat.max()) + 1
+    if n < 1:
+        return out
+    # only patches of a region's size: a smaller one's fit does not extrapolate, and grown past that size it
+    # would be scored, and classified, on pixels it did not grow to
+    groups = {k: v for k, v in _groups(out).items() if v.size >= params.min_region_pixels}
+    if not groups:
+        return out
+    P = _fit_groups(groups, st, params, n, trim=2.0 * params.grow_k)
+    steps = np.array([dr * W + dc for dr, dc, _ in links])
+    ok = np.stack([o.ravel() for _, _, o in links])  # (4, H*W) link allowed
+    has_return = np.isfinite(st.X[:, 2])
+    min_cos = np.cos(np.deg2rad(params.face_min_angle_deg))
+    for _ in range(params.complete_rounds):
+        cand = np.flatnonzero((flat < 0) & has_return)
+        if cand.size == 0:
+            break
+        nb = np.where(ok[:, cand], flat[np.clip(cand[None, :] + steps[:, None], 0, H * W - 1)], -1)
+        x, u, s = st.X[cand], st.U[cand], st.S[cand]
+        best_z = np.full(cand.size, np.inf)
+        best_l = np.full(cand.size, -1)
+        for k in range(len(steps)):
+            m = nb[k] >= 0
+            if not m.any():
+                continue
+            z = np.full(cand.size, np.inf)
+            z[m] = _pixel_residuals(P, nb[k, m], x[m], u[m], s[m])
+            b = (z < best_z) | ((z == best_z) & (nb[k] >= 0) & (nb[k] < best_l))  # a tie goes to the lower label
+            best_z[b] = z[b]
+            best_l[b] = nb[k, b]
+        take = best_z <= params.complete_k
+        if not take.any():
+            break
+        g = gradient(P[best_l[take]], x[take])
+        cos = np.abs(np.einsum("ij,ij->i", g, normals[cand[take]])) / np.linalg.norm(g, axis=1)
+        take[take] = ~(cos < min_cos)  # NaN (no normal, or no gradient) passes
+        if not take.any():
+            break
+        flat[cand[take]] = best_l[take]
     return out

@@ -261,13 +261,17 @@ def _axial_pieces(x: np.ndarray, s: np.ndarray, n: np.ndarray, min_pixels: int, 
     if not r2 > 0:
         return None
     centre, radius = sol[0] * e1 + sol[1] * e2, float(np.sqrt(r2))
+    def too_small(side: np.ndarray | None) -> bool:
+        return side is None or min(np.sum(side == 0), np.sum(side == 1)) < max(min_pixels, len(x) // 10)
+
     side = _axial_cut(x, s, centre, axis, radius, params)
-    if side is None or min(np.sum(side == 0), np.sum(side == 1)) < max(min_pixels, len(x) // 10):
+    if too_small(side):
         return None
     # the normals' axis of a noisy pipe may be a degree off, which bends its profile: a pipe whose fitted
-    # cylinder's profile is one line is one surface
+    # cylinder's profile is one line, or bends only where too few points lie to stand alone (its far end), is
+    # one surface
     cyl = fit_cylinder(x[sub], s[sub], init=(centre, axis, radius), max_points=600, huber=1.5, max_iter=10)
-    if cyl.ok and _axial_cut(x, s, cyl.point, cyl.axis, cyl.radius, params) is None:
+    if cyl.ok and too_small(_axial_cut(x, s, cyl.point, cyl.axis, cyl.radius, params)):
         return None
     return side
 

@@ -126,3 +126,33 @@ def test_a_patch_not_better_than_noise_is_unsure(mockup_scan):
         DescribeParams(max_local_scatter=0.0)
     with pytest.raises(ValueError, match="min_scatter_triples"):
         DescribeParams(min_scatter_triples=2)
+
+
+def test_pixels_outside_the_support_extend_a_patch_but_not_its_classification(mockup_scan):
+    """A pipe's patch given a two-pixel band of the surfaces around it, outside Segmentation.support (as the
+    border completion gives limb pixels): its classification is the pipe's alone, to the bit; with the band in
+    the support the fit sees it."""
+    import scipy.ndimage as ndi
+
+    scan, truth, seg = mockup_scan
+    params = DescribeParams(merge_explained=False)
+    clean = describe(scan, params, segmentation=seg)
+    cyl = max((p for p in clean.patches if p.label == "CYL"), key=lambda p: p.n_pixels)
+    mask = seg.labels == cyl.id
+    band = ndi.binary_dilation(mask, iterations=2) & ~mask & (seg.labels >= 0)
+    assert band.sum() >= 50
+    labels = np.where(band, cyl.id, seg.labels)
+    patches = []
+    for p in seg.patches:
+        rows, cols = np.nonzero(labels == p.id)
+        patches.append(Patch(p.id, np.stack([rows, cols], axis=1), int(rows.size), p.surface_type, p.fit, p.small,
+                             p.noisy))
+    grown = replace(seg, labels=labels, patches=tuple(patches))
+    kept = describe(scan, params, segmentation=replace(grown, support=(seg.labels >= 0) & ~band))
+    seen = describe(scan, params, segmentation=replace(grown, support=None))
+    pipe_kept, pipe_seen = (next(q for q in d.patches if q.id == cyl.id) for d in (kept, seen))
+    assert pipe_kept.n_pixels == cyl.n_pixels + int(band.sum())
+    assert pipe_kept.label == "CYL"
+    assert pipe_kept.classification.invariants["radius_m"][0] == cyl.classification.invariants["radius_m"][0]
+    assert pipe_seen.classification.invariants.get("radius_m", (None,))[0] != \
+        cyl.classification.invariants["radius_m"][0]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import _support
 import _synthetic_range as S  # tests/ is on sys.path under pytest's default import mode
 import numpy as np
 import pytest
@@ -209,6 +210,70 @@ def test_crease_between_planes_gives_two_patches():
     assert (seg.edges & EdgeType.CREASE).any()
 
 
+def test_fragments_are_dropped_but_small_objects_in_front_stay():
+    """_drop_fragments on a hand-made label image (range 2 m, one jump column): a 10-pixel patch on the large
+    patch's surface and one behind a jump go; one in front of everything around it stays; None keeps all."""
+    from recognition.segmentation.peel import _drop_fragments
+
+    labels = np.zeros((20, 30), np.int32)
+    rng = np.full(labels.shape, 2.0)
+    labels[2:4, 2:7] = 1  # on the big patch's surface
+    labels[10:12, 2:7] = 2  # in front: nearer than everything around it, across jumps
+    rng[10:12, 2:7] = 1.5
+    labels[15:17, 20:25] = 3  # behind: farther than its neighbours
+    rng[15:17, 20:25] = 2.5
+    jump_h = np.zeros((20, 29), bool)
+    jump_v = np.zeros((19, 30), bool)
+    for r0, c0 in ((10, 2), (15, 20)):
+        jump_h[r0:r0 + 2, c0 - 1] = jump_h[r0:r0 + 2, c0 + 4] = True
+        jump_v[r0 - 1, c0:c0 + 5] = jump_v[r0 + 1, c0:c0 + 5] = True
+    out = _drop_fragments(labels, SegmentationParams(min_kept_pixels=20), rng, jump_h, jump_v)
+    assert set(np.unique(out)) == {-1, 0, 2}
+    assert np.all(out[labels == 1] == -1) and np.all(out[labels == 3] == -1) and np.all(out[labels == 2] == 2)
+    assert _drop_fragments(labels, SegmentationParams(min_kept_pixels=None), rng, jump_h, jump_v) is labels
+
+
+def test_border_completion_gives_a_patch_its_border_but_not_the_next_face():
+    """A roof's two faces, each labelled but for a band at the crease and two columns at the image border: completion
+    gives each face back its own band pixels (within complete_k sigma and face_min_angle_deg of its plane),
+    never the other face's; with complete_k None nothing changes."""
+    from recognition.segmentation.grid import _neighbour_links, _State
+    from recognition.segmentation.reassignment import _complete_borders
+
+    sigma = 1e-3
+    n1, n2 = np.array([1.0, 0, -1.0]), np.array([-1.0, 0, -1.0])
+    surfaces = [S.Surface(lambda d: _halfplane(d, n1, x_sign=-1), 1),
+                S.Surface(lambda d: _halfplane(d, n2, x_sign=1), 2)]
+    pts, _, ids = S.render(surfaces, CAM, sigma, np.random.default_rng(3))
+    valid = ids > 0
+    crease = np.abs(pts[..., 0]) < 0.02
+    labels = np.where(valid & ~crease, ids - 1, -1).astype(np.int32)
+    labels[:, :2] = -1
+    normals = np.where((ids == 1)[..., None], n1 / np.linalg.norm(n1), n2 / np.linalg.norm(n2))
+    X = pts.reshape(-1, 3)
+    U = X / np.linalg.norm(X, axis=1, keepdims=True)
+    # a sigma 5x the noise (as the self-calibration may set it): the other face's first pixels fit within 6 sigma
+    st = _State(X=X, U=U, S=np.where(valid.ravel(), 5 * sigma, np.nan), hk=np.ones(X.shape[0], np.int64))
+    no_jump_h = np.zeros((CAM.height, CAM.width - 1), bool)
+    no_jump_v = np.zeros((CAM.height - 1, CAM.width), bool)
+    links = _neighbour_links(valid.shape, valid, no_jump_h, no_jump_v)
+    out = _complete_borders(labels, st, SegmentationParams(), links, normals.reshape(-1, 3))
+    band = valid & (labels < 0)
+    assert band.sum() > 300
+    assert np.mean(out[band] >= 0) > 0.95  # the band is given back...
+    assert np.all(out[band & (out >= 0)] == ids[band & (out >= 0)] - 1)  # ...each pixel to its own face
+    # with the second face unlabelled, the first face's plane fits its pixels near the crease within the noise:
+    # the normals alone keep them out (without normals, some go)
+    alone = np.where(ids == 1, labels, -1)
+    reach = SegmentationParams(complete_rounds=4)  # through the crease band into the other face
+    kept = _complete_borders(alone, st, reach, links, normals.reshape(-1, 3))
+    assert np.all(kept[ids == 2] == -1)
+    blind = _complete_borders(alone, st, reach, links, np.full((X.shape[0], 3), np.nan))
+    assert np.any(blind[ids == 2] == 0)
+    assert _complete_borders(labels, st, SegmentationParams(complete_k=None), links,
+                             normals.reshape(-1, 3)) is labels
+
+
 def _halfplane(d, n, x_sign):
     n = n / np.linalg.norm(n)
     p0 = np.array([0, 0, 2.0])
@@ -258,8 +323,9 @@ def test_step_times_are_reported_and_change_nothing():
     timed = segment(pts, sig, steps=steps)
     plain = segment(pts, sig)
     assert np.array_equal(timed.labels, plain.labels)
-    # this image is below the coarse grid's size: the grid's steps, then the last two
-    assert list(steps) == ["edges", "curvature", "seeds", "growing", "merging", "peel", "final fits"]
+    # this image is below the coarse grid's size: the grid's steps, then the last three
+    assert list(steps) == ["edges", "curvature", "seeds", "growing", "merging", "peel", "border completion",
+                           "final fits"]
     assert steps["edges"] >= 1.0 and all(t >= 0 for t in steps.values())
 
 
@@ -616,6 +682,19 @@ def test_a_pipe_and_its_reducer_are_cut_apart_along_the_axis(shape):
     wrong = np.mean(side != np.where(reducer, side[np.argmax(t)], side[np.argmin(t)]))
     assert side[np.argmax(t)] != side[np.argmin(t)]
     assert wrong < 0.06  # a slice is half a radius (5 cm): at most about one slice on the wrong side
+
+
+def test_a_long_pipe_whose_profile_bends_only_at_its_end_is_not_cut():
+    """A metal pipe's patch (every third point, float32) from the calibration suite's factory-scanner frame
+    s2004-p10-v0, 6.5 m away with specular dropouts: about the normals' axis its profile bends half-way, about
+    the fitted cylinder's only over its last points, too few to stand alone. One surface, not cut (it was, at
+    full size into 5282 and 2871 pixels)."""
+    from recognition.segmentation.splits import _axial_pieces
+
+    z = np.load(_support.DATA / "long_metal_pipe_patch.npz")
+    x, s, n = (z[k].astype(np.float64) for k in ("points", "sigma", "normals"))
+    assert len(x) == 2718
+    assert _axial_pieces(x, s, n, 200, SegmentationParams()) is None
 
 
 def test_a_far_box_corner_that_no_quadric_fits_is_cut_into_its_faces():
