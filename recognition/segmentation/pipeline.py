@@ -106,7 +106,7 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
     edges = _edge_image(shape, full.jump_h, full.jump_v)
     edges[crease] |= np.uint8(EdgeType.CREASE)
     labels = _peel_weak(labels, params, full.jump_h, full.jump_v)  # 10
-    labels = _drop_fragments(labels, params, np.linalg.norm(pts, axis=2), full.jump_h, full.jump_v)  # 10
+    labels = _drop_fragments(labels, params, full.ranges, full.jump_h, full.jump_v)  # 10
     lap("peel")
     support = labels >= 0  # what the fits rest on: not the pixels the completion adds
     labels = _complete_borders(labels, st, params, links, cur.normals.reshape(-1, 3))  # 11
