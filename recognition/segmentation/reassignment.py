@@ -14,6 +14,12 @@ from .quick_fits import _fit_groups, _pixel_residuals
 from .types import SegmentationParams
 
 
+def _flat_links(links, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`._neighbour_links` on the flattened image: the flat index offset of each direction (4,) and whether
+    each pixel's link that way is allowed (4, H*W)."""
+    return (np.array([dr * width + dc for dr, dc, _ in links]), np.stack([o.ravel() for _, _, o in links]))
+
+
 def _reassign(labels: np.ndarray, st: _State, params: SegmentationParams, links, jump_h: np.ndarray,
               jump_v: np.ndarray) -> np.ndarray:
     """Move border pixels to the neighbouring patch whose surface fits them clearly better (returns new labels).
@@ -42,8 +48,7 @@ def _reassign(labels: np.ndarray, st: _State, params: SegmentationParams, links,
     thr = 2.0 * params.grow_k
     groups = _groups(out)
     P = _fit_groups(groups, st, params, n, trim=thr)
-    steps = np.array([dr * W + dc for dr, dc, _ in links])
-    ok = np.stack([o.ravel() for _, _, o in links])  # (4, H*W) link allowed
+    steps, ok = _flat_links(links, W)
     # first candidates: labelled pixels with a linked neighbour of another patch
     diff_h = (out[:, :-1] != out[:, 1:]) & ~jump_h & (out[:, :-1] >= 0) & (out[:, 1:] >= 0)
     diff_v = (out[:-1, :] != out[1:, :]) & ~jump_v & (out[:-1, :] >= 0) & (out[1:, :] >= 0)
@@ -131,8 +136,7 @@ def _complete_borders(labels: np.ndarray, st: _State, params: SegmentationParams
     if not groups:
         return out
     P = _fit_groups(groups, st, params, n, trim=2.0 * params.grow_k)
-    steps = np.array([dr * W + dc for dr, dc, _ in links])
-    ok = np.stack([o.ravel() for _, _, o in links])  # (4, H*W) link allowed
+    steps, ok = _flat_links(links, W)
     has_return = np.isfinite(st.X[:, 2])
     min_cos = np.cos(np.deg2rad(params.face_min_angle_deg))
     for _ in range(params.complete_rounds):
