@@ -17,8 +17,7 @@ def _finalise(labels: np.ndarray, st: _State, params: SegmentationParams, declar
 
     Fits (and so ``rms_sigma`` and the ``noisy`` flag) are in units of the *declared* sigma, not of the
     self-calibrated one: a sensor much noisier than its model says still gives noisy patches. ``support``
-    (H*W,) bool: the pixels the fits rest on (:attr:`Segmentation.support`; all when None, or when fewer than
-    10 of a patch's pixels are).
+    (H*W,) bool: the pixels the fits rest on (:attr:`Segmentation.support`; all when None).
     """
     groups = _groups(labels)
     order = sorted(groups, key=lambda k: (-groups[k].size, int(groups[k][0])))
@@ -31,8 +30,7 @@ def _finalise(labels: np.ndarray, st: _State, params: SegmentationParams, declar
         flat[idx] = new
         counts = np.bincount(st.hk[idx], minlength=5)
         stype = SurfaceType(int(np.argmax(counts[1:])) + 1) if counts[1:].sum() else SurfaceType.NONE
-        fitted = idx if support is None else idx[support[idx]]
-        sub = _subsample(fitted if fitted.size >= 10 else idx, params.final_fit_points)
+        sub = _subsample(idx if support is None else idx[support[idx]], params.final_fit_points)
         x, s = st.X[sub], declared[sub]
         fit: PlaneFit | QuadricSurfaceFit
         if stype == SurfaceType.PLANAR or sub.size < 10:

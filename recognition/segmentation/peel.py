@@ -52,8 +52,7 @@ def _peel_weak(labels: np.ndarray, params: SegmentationParams, jump_h: np.ndarra
     return np.where(weak & ~(thin[lab] & row_end), -1, labels).astype(np.int32)
 
 
-
-def _drop_fragments(labels: np.ndarray, params: SegmentationParams, rng: np.ndarray, jump_h: np.ndarray,
+def _drop_fragments(labels: np.ndarray, params: SegmentationParams, ranges: np.ndarray, jump_h: np.ndarray,
                     jump_v: np.ndarray) -> np.ndarray:
     """Unlabel the patches of fewer than ``min_kept_pixels`` pixels, but small objects on their own (none when
     ``min_kept_pixels`` is None).
@@ -66,7 +65,7 @@ def _drop_fragments(labels: np.ndarray, params: SegmentationParams, rng: np.ndar
     around it (every neighbour with a return across a jump and farther) is a small object, not a fragment of a
     surface, and stays.
 
-    ``rng``: (H, W) range of each pixel (NaN where no return).
+    ``ranges``: (H, W) range of each pixel (NaN where no return).
     """
     if params.min_kept_pixels is None:
         return labels
@@ -76,8 +75,8 @@ def _drop_fragments(labels: np.ndarray, params: SegmentationParams, rng: np.ndar
         return labels
     # a patch is a fragment when a neighbour with a return (not its own) is on its surface (no jump) or nearer
     fragment = np.zeros(sizes.size, bool)
-    for a, b, ra, rb, j in ((labels[:, :-1], labels[:, 1:], rng[:, :-1], rng[:, 1:], jump_h),
-                            (labels[:-1, :], labels[1:, :], rng[:-1, :], rng[1:, :], jump_v)):
+    for a, b, ra, rb, j in ((labels[:, :-1], labels[:, 1:], ranges[:, :-1], ranges[:, 1:], jump_h),
+                            (labels[:-1, :], labels[1:, :], ranges[:-1, :], ranges[1:, :], jump_v)):
         m = (a != b) & np.isfinite(ra) & np.isfinite(rb)
         fragment[a[m & (a >= 0) & (~j | (rb < ra))]] = True
         fragment[b[m & (b >= 0) & (~j | (ra < rb))]] = True

@@ -124,18 +124,15 @@ def _complete_borders(labels: np.ndarray, st: _State, params: SegmentationParams
     """
     if params.complete_k is None:
         return labels
+    # only patches of a region's size: a smaller one's fit does not extrapolate, and grown past that size it
+    # would be scored, and classified, on pixels it did not grow to
+    groups = {k: v for k, v in _groups(labels).items() if v.size >= params.min_region_pixels}
+    if not groups:
+        return labels
     H, W = labels.shape
     out = labels.copy()
     flat = out.ravel()
-    n = int(flat.max()) + 1
-    if n < 1:
-        return out
-    # only patches of a region's size: a smaller one's fit does not extrapolate, and grown past that size it
-    # would be scored, and classified, on pixels it did not grow to
-    groups = {k: v for k, v in _groups(out).items() if v.size >= params.min_region_pixels}
-    if not groups:
-        return out
-    P = _fit_groups(groups, st, params, n, trim=2.0 * params.grow_k)
+    P = _fit_groups(groups, st, params, int(flat.max()) + 1, trim=2.0 * params.grow_k)
     steps, ok = _flat_links(links, W)
     has_return = np.isfinite(st.X[:, 2])
     min_cos = np.cos(np.deg2rad(params.face_min_angle_deg))

@@ -211,8 +211,9 @@ def test_crease_between_planes_gives_two_patches():
 
 
 def test_fragments_are_dropped_but_small_objects_in_front_stay():
-    """_drop_fragments on a hand-made label image (range 2 m, one jump column): a 10-pixel patch on the large
-    patch's surface and one behind a jump go; one in front of everything around it stays; None keeps all."""
+    """_drop_fragments on a hand-made label image (range 2 m; two 10-pixel patches ringed by jumps, one nearer,
+    one farther): a 10-pixel patch on the large patch's surface and the one behind its jumps go; the one in
+    front of everything around it stays; None keeps all."""
     from recognition.segmentation.peel import _drop_fragments
 
     labels = np.zeros((20, 30), np.int32)
