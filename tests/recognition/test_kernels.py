@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.ndimage as ndi
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from recognition.segmentation import kernels
@@ -184,10 +184,12 @@ def _surface_groups(seed: int, n_groups: int):
 
 
 @given(SEEDS, st.integers(1, 12))
+@example(seed=496, n_groups=4)  # a coefficient of 0.0065 off by 2e-8: rounding, beyond the former atol of 1e-8
 @settings(max_examples=40, deadline=None)
 def test_quick_fits_equal_the_batched_reference(seed, n_groups):
     """The compiled fits against the batched numpy ones: the same surfaces (up to the sign an eigenvector
-    takes) and residuals, to the rounding of moments summed in another order."""
+    takes) and residuals, to the rounding of moments summed in another order (of a unit coefficient vector:
+    1e-7 absolute)."""
     from recognition.segmentation.quick_fits import _quick_fits, _quick_fits_reference
 
     st_, groups, planar = _surface_groups(seed, n_groups)
@@ -199,7 +201,7 @@ def test_quick_fits_equal_the_batched_reference(seed, n_groups):
             assert np.isnan(P[g]).all() and np.isinf(zs[g]).all()
             continue
         sign = np.sign(P[g] @ Pr[g])
-        np.testing.assert_allclose(sign * P[g], Pr[g], rtol=1e-6, atol=1e-8)
+        np.testing.assert_allclose(sign * P[g], Pr[g], rtol=1e-6, atol=1e-7)
         np.testing.assert_allclose(zs[g], zr[g], rtol=1e-5, atol=1e-6)  # (grazing points: 1e-6 seen)
 
 
