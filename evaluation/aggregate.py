@@ -238,13 +238,17 @@ def aggregate_pose(trials: list[dict[str, Any]], resampling: Resampling | None =
 def _pose_verdicts(trials: list[dict[str, Any]], rs: Resampling | None) -> dict[str, Any]:
     """What the core's ``ok`` verdicts are worth (DESIGN 11.6): how many ok poses are wrong (not a success),
     over all trials and over the ok ones, and the reliability table of the confidence ok poses state (the
-    fraction of them that are right per confidence bin: it should be at least the confidence)."""
+    fraction of them that are right per confidence bin: it should be at least the confidence); and the poses
+    conditional on one object (not ok, used for change detection), with how many of them are wrong."""
     ok = np.array([bool(t.get("ok")) for t in trials])
     right = np.array([bool(t.get("success")) for t in trials])
+    conditional = np.array([bool(t.get("conditional_on")) for t in trials])
     wrong = ok & ~right
     conf = [float(t.get("confidence") or 0.0) for t, o in zip(trials, ok, strict=True) if o]
     out: dict[str, Any] = {
         "n_ok": int(ok.sum()),
+        "n_conditional": int(conditional.sum()),
+        "conditional_wrong": int((conditional & ~right).sum()),
         "ok_wrong": int(wrong.sum()),
         "ok_wrong_rate": float(wrong.mean()) if len(trials) else None,
         "ok_precision": float(right[ok].mean()) if ok.any() else None,

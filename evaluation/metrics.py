@@ -241,6 +241,8 @@ INFORMATIVE: tuple[Informative, ...] = (
     Informative("pose.n_constrained", "how many trials constrain all 6 DOF"),
     Informative("pose.initial.n", "how many trials have a pose before ICP"),
     Informative("pose.n_ok", "how many trials have an ok pose"),
+    Informative("pose.n_conditional", "how many trials have a pose conditional on one object (not ok)"),
+    Informative("pose.conditional_wrong", "how many of the conditional poses are wrong (not a success)"),
     Informative("change.per_label.*.support", "how many truth features of the label"),
     Informative("change.objects.per_label.*.support", "how many truth objects of the label"),
     Informative("change.altered_by_kind.*.support", "how many truth altered features of the kind of object"),

@@ -104,7 +104,8 @@ def pose_section(result, truth_T_world_sensor: np.ndarray, median_true_range_m: 
     Returns
     -------
     dict with ``rotation_error_deg``, ``translation_error_mm``, ``add_mm`` (None when the core returned no
-    pose), ``success`` (False then), ``constrained``, ``ok``, ``confidence``, ``free_dof``, ``initial``
+    pose), ``success`` (False then), ``constrained``, ``ok``, ``conditional_on`` (the one object a pose that
+    passed every other check rests on, "" otherwise), ``confidence``, ``free_dof``, ``initial``
     (the same errors before ICP), ``n_hypotheses``, ``n_nodes``, ``reason``, ``alternatives`` (the other
     distinct poses the core weighed: agreement, separation from the winner, errors), ``agreement`` (the data's
     agreement with the model at the pose, when the result has one: ``confidence`` is then the probability
@@ -119,6 +120,7 @@ def pose_section(result, truth_T_world_sensor: np.ndarray, median_true_range_m: 
     out.update({
         "constrained": bool(constrained),
         "ok": bool(result.ok),
+        "conditional_on": getattr(result, "conditional_on", ""),
         "reason": result.reason,
         "confidence": float(result.confidence),
         "free_dof": int(result.free_dof),

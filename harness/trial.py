@@ -397,7 +397,7 @@ def estimate_pose(ctx: TrialContext, desc, oracle: str | None, peer: tuple | Non
                        ctx.prepared.model_points)
     t = result.timing_s
     timing = {"matching": sum(t.get(k, 0.0) for k in ("matching", "pose", "verification")), "icp": t.get("icp")}
-    if not result.ok or result.T_world_sensor is None:
+    if not result.usable:  # ok, or conditional on one object: change detection judges the rest against it
         return None, None, None, rec, timing
     return result.T_world_sensor, result.cov_T_world_sensor, result.predicted, rec, timing
 

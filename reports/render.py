@@ -680,11 +680,15 @@ def pose_section(run: RunData) -> Section:
     else:
         blocks.append(Note("No per-trial pose errors in the trial records: no CDF to draw.", "info"))
     vrows = [(Cell(m), Cell(fmt(p.get("n_ok")), "num"), ci_cell(p, "ok_precision"), Cell(fmt(p.get("ok_wrong")), "num"),
-              ci_cell(p, "ok_wrong_rate"))
+              ci_cell(p, "ok_wrong_rate"), Cell(fmt(p.get("n_conditional")), "num"),
+              Cell(fmt(p.get("conditional_wrong")), "num"))
              for m, p in secs.items() if p is not None and p.get("n_ok") is not None]
     if vrows:
         blocks.append(Table(("method", "poses stated ok", "of them right", "ok but wrong", "ok but wrong, share of "
-                             "trials"), tuple(vrows), caption="What an ok verdict is worth (right: a success)"))
+                             "trials", "conditional on one object", "of them wrong"), tuple(vrows),
+                            caption="What an ok verdict is worth (right: a success). A conditional pose is not ok: it "
+                            "rests on one object alone in some direction and holds only if that object has not moved; "
+                            "change detection still judges the rest of the view against it"))
     rel = {m: p["reliability"] for m, p in secs.items() if p is not None and p.get("reliability")}
     if rel:
         blocks.append(Image(figures.reliability_figure(rel, "confidence stated with an ok pose", "ok poses"),

@@ -141,7 +141,7 @@ def run_bench(suite: str = "smoke", per_group: int = 2, voxels: list[float] | No
                 res = localise(core_desc, pscan, prepared.apriori, LocaliseParams(), sim)
                 t = res.timing_s
                 dt = sum(t.get(k, 0.0) for k in ("matching", "pose", "verification", "icp"))
-                _pose_row(pose_acc[group]["core"], res.T_world_sensor if res.ok else None, T_gt, limit_mm, dt)
+                _pose_row(pose_acc[group]["core"], res.T_world_sensor if res.usable else None, T_gt, limit_mm, dt)
                 print(f"  core: ok={res.ok} {res.reason} errors {_pose_errors(res.T_world_sensor, T_gt)}",
                       flush=True)
             med = ctx.median_range or 5.0

@@ -114,12 +114,13 @@ def run(args: argparse.Namespace) -> int:
           f"{len(desc.patches)} patches (" + ", ".join(f"{n} {c}" for c, n in counts.items() if n) + "), "
           f"read {read_s:.2f} s, describe {sum(desc.timing_s.values()):.2f} s -> {out}")
     if located is not None:
-        if not located.ok:
+        if not located.usable:
             print(f"  pose: not found ({located.reason})")
         else:
             t = located.T_world_sensor[:3, 3]
+            given = "" if located.ok else f", conditional on {located.conditional_on} not having moved"
             print(f"  pose: sensor at ({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) m, confidence {located.confidence:.2f}, "
-                  f"{located.free_dof} free dof")
+                  f"{located.free_dof} free dof{given}")
         if changes is not None:
             tally = Counter(r.label for r in changes.features.values())
             print("  change: " + ", ".join(f"{n} {lab}" for lab, n in sorted(tally.items())) +
@@ -137,7 +138,7 @@ def localise_and_compare(desc: SceneDescription, scan, model: SceneModel):
     from recognition.localisation import localise
 
     located = localise(desc, scan, model)
-    if not located.ok or located.T_world_sensor is None:
+    if not located.usable:
         return located, None
     return located, detect_changes(desc, scan, model, located.T_world_sensor, located.cov_T_world_sensor,
                                    predicted=located.predicted)
@@ -147,7 +148,7 @@ def pose_dict(located) -> dict:
     """A :class:`recognition.localisation.PoseResult` as plain data (world frame, metres; covariance over rotation
     vector (rad) and translation (m))."""
     return {
-        "ok": bool(located.ok), "reason": located.reason,
+        "ok": bool(located.ok), "reason": located.reason, "conditional_on": located.conditional_on,
         "T_world_sensor": _plain(located.T_world_sensor),
         "T_world_sensor_initial": _plain(located.T_world_sensor_initial),
         "cov_T_world_sensor": _plain(located.cov_T_world_sensor),
@@ -172,11 +173,13 @@ def change_dict(changes) -> dict:
 def change_table(located, changes, model: SceneModel, title: str = "") -> str:
     """Markdown: the pose found (or why none) and every object's and observed feature's change label."""
     lines = [f"# {title}: against the a priori model {model.name!r}", ""]
-    if not located.ok:
+    if not located.usable:
         return "\n".join(lines + [f"No pose: {located.reason}. No change detection without a pose.", ""])
     t = located.T_world_sensor[:3, 3]
+    given = "" if located.ok else (f" Conditional on {located.conditional_on} not having moved (the pose rests on it "
+                                   "alone in some direction): every label below holds only if it did not.")
     lines += [f"Pose: sensor at ({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) m, confidence {located.confidence:.2f}, "
-              f"{located.free_dof} degrees of freedom unconstrained.", "",
+              f"{located.free_dof} degrees of freedom unconstrained.{given}", "",
               "| object | label | features (label) |", "|:---|:---|:---|"]
     def verdict(fid: str) -> str:
         r = changes.features[fid]

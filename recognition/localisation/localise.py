@@ -102,8 +102,12 @@ class LocaliseParams:
     max_free_without_one : an ok pose leaves at most this many DOF free when the ICP's correspondences on any one
         movable model object (kinds other than :data:`.icp.STABLE_KINDS`) are left out: in a partially correct
         model any one of them may have moved, and a pose that rests on it alone is as wrong as it. A move is
-        seen against the rest of the view in the directions the rest fixes, and goes unseen in the others: with
-        most of the pose resting on one object, nothing would show it had moved. 6: no such check.
+        seen against the rest of the view in the directions the rest fixes, and goes unseen in the others:
+        there, the pose with the object moved explains the data exactly as well. 6: no such check.
+    conditional_max_free : a pose that passes every other check but rests on one object is not ok but
+        *conditional* on it (``PoseResult.conditional_on``) while the rest of the view leaves at most this many
+        DOF free without it: usable for change detection, which then judges the rest of the view against it.
+        Beyond it, the pose is not used at all.
     disagree_fraction : the patches of which fewer than this fraction of pixels agree with the final pose are
         registered on their own (:func:`_disagreeing_alternative`): the pose they ask for is an alternative that
         the final pose must be separated from. 0: no such alternative.
@@ -170,9 +174,15 @@ class LocaliseParams:
         "checked on calibration with the tie rule (c8864fb, same draws): ok-but-wrong poses 4 -> 3, constrained pose "
         "success 0.892 -> 0.919")
     max_free_without_one: int = tuned(
-        3, unit="DOF", chosen="calibration at 445e44a: the ok-but-wrong poses that rested on one object left 6, 6 "
-        "and 1 DOF free without it, the right ones 1-3 (0: all 12 Kinect-like ok poses lost, 9 of them right); "
-        "3: the rest of the view fixes at least half of the pose")
+        0, unit="DOF", chosen="issue 34's rule (a pose is trustworthy only if no materially different pose explains "
+        "the data nearly as well; one object moved along a direction only it fixes does): checked on calibration "
+        "at 6ad664a, ok but wrong 1 -> 0 (a Kinect-like pose 180 deg off resting on one pipe run), 11 right poses "
+        "conditional instead of ok (10 Kinect-like); 3 before (445e44a), when not ok also meant no change detection")
+    conditional_max_free: int = tuned(
+        3, unit="DOF", chosen="max_free_without_one's value before the conditional verdict (calibration at 445e44a: "
+        "the wrong poses that rested on one object left 6, 6 and 1 DOF free without it, the right ones 1-3): the "
+        "poses change detection used then, it uses now (calibration at 6ad664a: 6 instead gave change macro-F1 "
+        "0.906 -> 0.886 with 3 more poses, all wrong)")
     disagree_fraction: float = tuned(
         0.5, unit="fraction", chosen="not tuned: a patch mostly unexplained by the pose (under half its pixels agree)")
     disagree_reach: float = tuned(
@@ -196,8 +206,9 @@ class LocaliseParams:
                              f"{self.max_twins}, {self.max_twin_candidates}, {self.max_reinterpretations}")
         if self.pin_angle_deg <= 0 or self.pin_rel <= 0:
             raise ValueError(f"pin_angle_deg and pin_rel must be > 0, got {self.pin_angle_deg}, {self.pin_rel}")
-        if not 0 <= self.max_free_without_one <= 6:
-            raise ValueError(f"max_free_without_one must be in 0..6, got {self.max_free_without_one}")
+        if not 0 <= self.max_free_without_one <= 6 or not 0 <= self.conditional_max_free <= 6:
+            raise ValueError(f"max_free_without_one and conditional_max_free must be in 0..6, got "
+                             f"{self.max_free_without_one}, {self.conditional_max_free}")
         if self.separation_leave_out < 0:
             raise ValueError(f"separation_leave_out must be >= 0, got {self.separation_leave_out}")
         if self.max_verify < 1:
@@ -238,6 +249,10 @@ class PoseResult:
     Attributes
     ----------
     ok : bool; reason : why not ok ("" when ok).
+    conditional_on : the movable model object the pose rests on alone (``LocaliseParams.max_free_without_one``)
+        when it passed every other check and the rest of the view fixes enough (``conditional_max_free``): not
+        ok, since that object may have moved, but the pose to use if it did not ("" otherwise; then ``usable``
+        is ``ok``).
     T_world_sensor : ndarray of shape (4, 4) or None, the final pose (after ICP).
     T_world_sensor_initial : ndarray of shape (4, 4) or None, closed form + weighted refinement (before ICP).
     cov_T_world_sensor : ndarray of shape (6, 6) or None, over (rotation vector rad, translation m), left
@@ -269,6 +284,12 @@ class PoseResult:
     timing_s: dict[str, float]
     alternatives: tuple[PoseAlternative, ...] = ()
     agreement: float | None = None
+    conditional_on: str = ""
+
+    @property
+    def usable(self) -> bool:
+        """Whether the pose is one to run change detection against: ok, or conditional on one object."""
+        return self.T_world_sensor is not None and (self.ok or bool(self.conditional_on))
 
 
 def _check_T(T, name: str) -> np.ndarray:
@@ -852,7 +873,7 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
             break
     # the winner's full ICP, against the model predicted visible from its quickly refined pose
     T_final, cov, free = T_quick, best.pose.cov_T_world_sensor, best.pose.free_dof
-    icp_note, rests_on = "", ""
+    icp_note, rests_on, resting_on = "", "", ""
     if params.use_icp:
         t0 = time.perf_counter()
         ir = icp_refine(scan, pred_quick, model, T_quick, params.icp,
@@ -866,6 +887,7 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
             if ir.free_dof_without_one > params.max_free_without_one:
                 rests_on = (f"pose rests on {ir.resting_on} alone: {ir.free_dof_without_one} DOF free without it "
                             "(had it moved, it would have carried the pose)")
+                resting_on = ir.resting_on if ir.free_dof_without_one <= params.conditional_max_free else ""
         else:
             icp_note = f"; ICP not applied: {ir.reason}"
     final_v = _verified(description, scan, model_simulator, T_final, params, timing)  # (for both alternatives)
@@ -900,8 +922,8 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
         f"pose not pinned within {params.pin_angle_deg:g} deg / {100 * params.pin_rel:g} % of range: the probe "
         f"{PROBE_NAMES[pin_probe]} is separated by {pin_z:.2f} < {params.pin_z} standard errors")
     verdict_conf = _confidence(min(pin_z, alt_z))
-    ok = (conf >= params.min_confidence and free == 0 and not ambiguous and not icp_note and not not_pinned
-          and not rests_on)
+    checked = conf >= params.min_confidence and free == 0 and not ambiguous and not icp_note and not not_pinned
+    ok = checked and not rests_on
     reason = ""
     if icp_note:
         reason = "pose not refined"
@@ -920,4 +942,5 @@ def localise(description: SceneDescription, scan: Scan, model: SceneModel,
     if res.stop_reason and not ok:
         reason += f"; search stopped: {res.stop_reason}"
     return PoseResult(ok, reason + icp_note if not ok else "", T_final, T_init, cov, int(free), verdict_conf,
-                      pairings, len(res.hypotheses), res.n_nodes, pred, timing, tuple(alternatives), float(conf))
+                      pairings, len(res.hypotheses), res.n_nodes, pred, timing, tuple(alternatives), float(conf),
+                      resting_on if checked else "")

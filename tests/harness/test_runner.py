@@ -384,3 +384,26 @@ def test_segmentation_benchmark_refuses_bad_arguments(argv, message, capsys):
         bench_segmentation(["--suite", "smoke", *argv])
     assert exc.value.code == 2
     assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("conditional_on, changes", [("cab_x", True), ("", False)])
+def test_a_conditional_pose_gets_change_detection_and_a_failed_one_none(monkeypatch, conditional_on, changes):
+    """A pose that is not ok only because it rests on one object (``conditional_on``) is the pose change detection
+    judges the rest of the view against; a pose not ok for another reason gives no change record. The record
+    keeps the verdict either way."""
+    from dataclasses import replace
+
+    from harness import trial
+
+    real = trial.localise
+
+    def not_ok(*args, **kwargs):
+        return replace(real(*args, **kwargs), ok=False, reason="pose rests on cab_x alone",
+                       conditional_on=conditional_on)
+
+    monkeypatch.setattr(trial, "localise", not_ok)
+    suite = load_suite("smoke")
+    spec = suite.trials[0]
+    core = trial.run_trial(spec, suite.plan, trial.prepare_scene(spec, None))["methods"]["core"]
+    assert not core["pose"]["ok"] and core["pose"]["conditional_on"] == conditional_on
+    assert (core["change"] is not None) == changes
