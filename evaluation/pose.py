@@ -4,7 +4,7 @@ Object Pose Estimation", ECCV 2018, doi:10.1007/978-3-030-01249-6_2) and the pos
 All functions are pure. Poses are ``T_world_sensor`` (``p_world = R p_sensor + t``); rotation errors are in
 degrees, translation errors and ADD in millimetres. Success (DESIGN 10.6): rotation <= 1 deg and translation
 <= 1 % of the median true range of the trial. Whether a trial "sees enough structure to constrain 6 DOF" is
-decided here from the truth (:func:`constrains_pose`), never by the core.
+decided here from the truth (:func:`constrains_pose`, :func:`twin_ambiguous`), never by the core.
 """
 
 from __future__ import annotations
@@ -16,14 +16,15 @@ import numpy as np
 
 from evaluation.metrics import MIN_SCORED_PIXELS
 from recognition.localisation import AxisPair, PlanePair, PointPair, free_dof_of, residuals
+from recognition.localisation.twins import twin_poses
 from scenes.features import Cone, Cylinder, Plane, Sphere, Torus
 from scenes.geometry import invert_transform
 from scenes.model import SceneModel
 from scenes.perturb import ChangeTruth
-from sensors.range_image import ScanTruth
+from sensors.range_image import FLAG_DROPOUT, ScanTruth
 
 __all__ = ["rotation_error_deg", "translation_error_mm", "add_mm", "pose_section", "constrains_pose",
-           "changed_features",
+           "changed_features", "twin_ambiguous",
            "SUCCESS_ROTATION_DEG", "SUCCESS_TRANSLATION_FRACTION"]
 
 SUCCESS_ROTATION_DEG = 1.0
@@ -144,6 +145,67 @@ def _alternative(alt, G: np.ndarray, median_true_range_m: float) -> dict:
             "success": e["success"]}
 
 
+def twin_ambiguous(truth: ScanTruth, model: SceneModel, predict, exclude: Collection[str] = (), *,
+                   min_pixels: int = MIN_SCORED_PIXELS, min_angle_deg: float = 2.0, min_shift_fraction: float = 0.02,
+                   k_sigma: float = 3.0, rel: float = 0.002, screen_stride: int = 4) -> bool:
+    """Whether a materially different pose explains the truth image as well as the true pose, by the a priori
+    model's symmetric or repeated structure (a box corner and a table seen away from the table's edges: turned
+    by 180 deg about the box's vertical, the model shows the same image).
+
+    :func:`constrains_pose` decides whether the visible surfaces fix the pose locally; a view that a twin pose
+    explains as well is not decided by any data, however fine. The candidates are the twin poses of the visible
+    features (:func:`recognition.localisation.twins.twin_poses`: each feature of ``>= min_pixels`` measured
+    pixels, not in ``exclude``, carried onto every feature of the same shape, itself included) that differ from
+    the truth by at least ``min_angle_deg`` or ``min_shift_fraction`` of the median true range. A twin explains
+    the image as well when the measured pixels that the model seen from it does not explain (farther than
+    ``k_sigma`` sigma plus ``rel`` of the range) outnumber those it leaves unexplained from the true pose by fewer
+    than ``min_pixels`` (one scorable region). Screened on every ``screen_stride``-th pixel, confirmed at full
+    resolution.
+
+    Parameters
+    ----------
+    truth : the trial's :class:`sensors.range_image.ScanTruth`.
+    model : the a priori model (what a method matches the data against).
+    predict : ``predict(T_world_sensor, stride) -> Prediction`` of ``model`` in the trial's sensor
+        (:meth:`recognition.localisation.ModelPredictor.predict` with the sensor bound).
+    exclude : features that cannot locate the sensor (:func:`changed_features`).
+    """
+    T = np.asarray(truth.T_world_sensor, dtype=np.float64)
+    tr = np.asarray(truth.true_range, dtype=np.float64)
+    if not np.isfinite(tr).any():
+        return False
+    scale = float(np.nanmedian(tr))
+    counts = truth.surface_pixel_counts(_measured(truth))
+    seen = {truth.surfaces[sid].feature_id for sid, n in counts.items() if n >= min_pixels} - set(exclude)
+    twins: dict[tuple, np.ndarray] = {}
+    for Tp in twin_poses(T, seen, model):
+        far = np.linalg.norm(Tp[:3, 3] - T[:3, 3]) >= min_shift_fraction * scale
+        if far or rotation_error_deg(Tp[:3, :3], T[:3, :3]) >= min_angle_deg:
+            twins.setdefault(tuple(np.round(Tp[:3].ravel(), 6)), Tp)
+    if not twins:
+        return False
+    tol = k_sigma * np.nan_to_num(np.asarray(truth.sigma, dtype=np.float64), nan=0.0) + rel * np.nan_to_num(tr)
+    measured = np.isfinite(tr) & _measured(truth)
+
+    def unexplained(pose: np.ndarray, stride: int) -> int:
+        pred = predict(pose, stride)
+        o, (h, w) = pred.offset, pred.range.shape
+        sub = (slice(o, None, stride), slice(o, None, stride))
+        with np.errstate(invalid="ignore"):
+            ok = np.abs(pred.range - tr[sub][:h, :w]) <= tol[sub][:h, :w]
+        return int((measured[sub][:h, :w] & ~ok).sum())
+
+    at_truth = {1: None, screen_stride: unexplained(T, screen_stride)}
+    for Tp in twins.values():
+        if (unexplained(Tp, screen_stride) - at_truth[screen_stride]) * screen_stride**2 >= 4 * min_pixels:
+            continue  # far apart on the screening grid: not a candidate
+        if at_truth[1] is None:
+            at_truth[1] = unexplained(T, 1)
+        if unexplained(Tp, 1) - at_truth[1] < min_pixels:
+            return True
+    return False
+
+
 def changed_features(changes: ChangeTruth) -> set[str]:
     """Features of the actual scene that cannot locate the sensor against the a priori model (the ``exclude``
     of :func:`constrains_pose`): those the perturbation moved or altered, and the new ones.
@@ -156,10 +218,17 @@ def changed_features(changes: ChangeTruth) -> set[str]:
         set(changes.new_features)
 
 
+def _measured(truth: ScanTruth) -> np.ndarray:
+    """(H, W) bool: the pixels where the sensor returned a point (no dropout flag): a surface closer than the
+    sensor's minimum range, or dark at grazing incidence, is in the truth image but shows nothing."""
+    return (np.asarray(truth.flags) & FLAG_DROPOUT) == 0
+
+
 def constrains_pose(truth: ScanTruth, model: SceneModel, min_pixels: int = MIN_SCORED_PIXELS, *,
                     sigma_angle: float = 0.01, sigma_pos_m: float = 0.01, max_sigma: float = 0.1,
                     exclude: Collection[str] = ()) -> bool:
-    """Whether the truth surfaces visible with >= ``min_pixels`` constrain all 6 DOF of the pose.
+    """Whether the truth surfaces visible with >= ``min_pixels`` measured pixels (:func:`_measured`) constrain all
+    6 DOF of the pose.
 
     ``exclude`` names features that cannot locate the sensor against the a priori model: those the
     perturbation moved, altered or added (:func:`changed_features`; a wall and a table seen with a moved pipe
@@ -176,7 +245,7 @@ def constrains_pose(truth: ScanTruth, model: SceneModel, min_pixels: int = MIN_S
     truth : the trial's :class:`sensors.range_image.ScanTruth`.
     model : the scene whose features the truth surfaces name (the actual, perturbed scene).
     """
-    counts = truth.surface_pixel_counts()
+    counts = truth.surface_pixel_counts(_measured(truth))
     T_sw = invert_transform(np.asarray(truth.T_world_sensor, dtype=np.float64))
     by_id = {f.id: f for f in model.features}
     pairs = []

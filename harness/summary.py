@@ -130,7 +130,8 @@ def _view_stats(views: list[dict[str, Any]]) -> dict[str, Any] | None:
         return None
     return {"viewpoint_rejection_rate": stats([v["viewpoint_rejection_rate"] for v in views]),
             "valid_fraction": stats([v["valid_fraction"] for v in views]),
-            "surfaces_seen": stats([v["surfaces_seen"] for v in views])}
+            "surfaces_seen": stats([v["surfaces_seen"] for v in views]),
+            "n_twin_ambiguous": sum(bool(v.get("twin_ambiguous")) for v in views)}
 
 
 VOLATILE = ("timing_s", "provenance", "run", "version")

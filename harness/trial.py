@@ -21,7 +21,7 @@ import numpy as np
 from evaluation.change import change_section, kinds_of_features, observable_features
 from evaluation.oracles import truth_classification, truth_pairings, truth_segmentation
 from evaluation.patches import classification_section, segmentation_section
-from evaluation.pose import changed_features, constrains_pose, pose_section
+from evaluation.pose import changed_features, constrains_pose, pose_section, twin_ambiguous
 from harness.methods import MethodSpec, call_stage, stage_method
 from harness.suite import VIEW_DISTANCE_BAND, TrialPlan, TrialSpec
 from recognition.change import detect_changes
@@ -214,7 +214,8 @@ def run_trial(spec: TrialSpec, plan: TrialPlan, prepared: PreparedScene,
                  "viewpoint_attempts": views.attempts, "viewpoint_rejection_rate": views.rejection_rate,
                  "valid_fraction": float(np.mean(scan.valid)),
                  "surfaces_seen": int(sum(1 for n in view.surface_pixels.values() if n >= spec.min_view_pixels)),
-                 "median_range_m": context.median_range, "constrains_pose": context.constrained},
+                 "median_range_m": context.median_range, "constrains_pose": context.constrained,
+                 "twin_ambiguous": context.twin_ambiguous},
         "timing_s": timing,
         "methods": method_records,
     }
@@ -264,8 +265,13 @@ class TrialContext:
         self.object_of = {f.id: o.id for m in (prepared.apriori, prepared.actual) for o in m.objects
                           for f in o.features}
         self.kind_of = kinds_of_features(prepared.apriori)  # altered F1 by kind (change.altered_by_kind)
-        self.constrained = bool(constrains_pose(truth, prepared.actual,
-                                                exclude=changed_features(prepared.change_truth)))
+        # the trial counts as constrained when the visible unchanged surfaces fix the pose locally and no twin
+        # pose of the model's symmetric or repeated structure explains the image as well (DESIGN 10.6)
+        exclude = changed_features(prepared.change_truth)
+        local = bool(constrains_pose(truth, prepared.actual, exclude=exclude))
+        self.twin_ambiguous = local and twin_ambiguous(
+            truth, prepared.apriori, lambda T, stride: prepared.predictor.predict(scan.sensor, T, stride), exclude)
+        self.constrained = local and not self.twin_ambiguous
 
     @property
     def apriori_at_truth(self):

@@ -4,13 +4,15 @@
 perturbed mock-up (``mockup_laser``) and factory bay (``factory_scanner``; ``kinect``: the bay with
 ``kinect_like`` under 4 m, as in the default suite), describes each scan, localises it with no pose prior
 and prints per group: the success rate over the trials whose truth constrains all
-6 DOF (:func:`evaluation.pose.constrains_pose`), median/p90 rotation and translation errors before and
+6 DOF (:func:`evaluation.pose.constrains_pose`) and that no twin pose explains as well
+(:func:`evaluation.pose.twin_ambiguous`), median/p90 rotation and translation errors before and
 after ICP, and the time per frame of matching + pose + verification + ICP (and of the final prediction).
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import time
 
 import numpy as np
@@ -24,7 +26,7 @@ def _stats(values):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from evaluation.pose import changed_features, constrains_pose, pose_section
+    from evaluation.pose import changed_features, constrains_pose, pose_section, twin_ambiguous
     from harness.suite import suite_from_dict
     from harness.trial import prepare_scene, sensor_for, trial_scan, trial_viewpoints
     from recognition.describe import describe
@@ -67,8 +69,10 @@ def main(argv: list[str] | None = None) -> int:
         med_range = float(np.nanmedian(truth.true_range))
         pts = scan.points[::8, ::8].reshape(-1, 3)
         pts = pts[np.all(np.isfinite(pts), axis=1)]
-        sec = pose_section(res, truth.T_world_sensor, med_range, constrains_pose(
-            truth, p.actual, exclude=changed_features(p.change_truth)), pts)
+        exclude = changed_features(p.change_truth)
+        constrained = constrains_pose(truth, p.actual, exclude=exclude) and not twin_ambiguous(
+            truth, p.apriori, functools.partial(p.predictor.predict, scan.sensor), exclude)
+        sec = pose_section(res, truth.T_world_sensor, med_range, constrained, pts)
         t = res.timing_s
         sec["time_core_s"] = t["matching"] + t["pose"] + t["verification"] + t["icp"]
         sec["time_total_s"] = wall
