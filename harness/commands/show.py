@@ -52,7 +52,8 @@ def trial_figures(record: dict[str, Any]) -> list[str]:
         return [*lines, f"  FAILED: {record.get('reason', '')}"]
     lines.append(f"  view: median range {view.get('median_range_m', float('nan')):.2f} m, "
                  f"{100 * view.get('valid_fraction', 0):.0f} % valid, {view.get('surfaces_seen')} surfaces of "
-                 f">= {spec.get('min_view_pixels', 200)} px, constrains 6 DOF: {view.get('constrains_pose')}; "
+                 f">= {spec.get('min_view_pixels', 200)} px, constrains 6 DOF: {view.get('constrains_pose')}"
+                 f"{' (a twin pose explains it as well)' if view.get('twin_ambiguous') else ''}; "
                  f"time {(record.get('timing_s') or {}).get('total') or 0:.2f} s")
     for name, m in (record.get("methods") or {}).items():
         seg, cls, pose, chg = (m.get(k) for k in ("segmentation", "classification", "pose", "change"))
@@ -63,7 +64,8 @@ def trial_figures(record: dict[str, Any]) -> list[str]:
             c = aggregate_classification([cls])
             parts.append(f"accuracy {_f(c['accuracy'])} ({c['n_patches']} patches)")
         if pose:
-            ok = "ok" if pose.get("ok") else "not ok"
+            ok = "ok" if pose.get("ok") else (f"conditional on {pose['conditional_on']}" if pose.get("conditional_on")
+                                              else "not ok")
             right = "right" if pose.get("success") else "wrong"
             parts.append(f"pose {ok}, {right}: {_f(pose.get('rotation_error_deg'), 2)} deg, "
                          f"{_f(pose.get('translation_error_mm'), 1)} mm")

@@ -73,3 +73,18 @@ def test_every_option_has_help_and_the_top_help_is_plain_text():
         for action in p._actions:
             if action.option_strings and action.dest != "help":
                 assert action.help, f"harness {name} {action.option_strings[0]} has no help text"
+
+
+def test_show_says_when_a_pose_is_conditional_and_a_view_twin_ambiguous():
+    from harness.commands.show import trial_figures
+
+    pose = {"ok": False, "conditional_on": "tank", "success": True, "rotation_error_deg": 0.1,
+            "translation_error_mm": 2.0}
+    record = {"trial_id": "t", "status": "ok", "spec": {}, "methods": {"core": {"pose": pose}},
+              "view": {"median_range_m": 1.0, "valid_fraction": 0.5, "surfaces_seen": 4, "constrains_pose": False,
+                       "twin_ambiguous": True}}
+    text = "\n".join(trial_figures(record))
+    assert "constrains 6 DOF: False (a twin pose explains it as well)" in text
+    assert "core: pose conditional on tank, right" in text
+    pose.update(conditional_on="", ok=False)
+    assert "core: pose not ok, right" in "\n".join(trial_figures(record))
