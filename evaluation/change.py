@@ -22,7 +22,7 @@ from recognition.localisation import Prediction, pixels_by_feature
 from scenes.model import SceneModel
 from scenes.perturb import ChangeTruth, change_kind
 from scenes.vocabulary import CHANGE_MAP_LABELS, NEW
-from sensors.range_image import FLAG_DROPOUT, ScanTruth
+from sensors.range_image import ScanTruth
 
 MIN_PIXELS = MIN_SCORED_PIXELS  # features showing fewer pixels are not observable (evaluation.metrics)
 
@@ -34,7 +34,7 @@ def observable_features(truth: ScanTruth, change_truth: ChangeTruth, apriori_at_
     # a priori pixels not occluded by the actual scene: the model surface is at or in front of what is there
     tol = 3 * np.nan_to_num(truth.sigma, nan=0.0) + 1e-3
     unoccluded = np.isfinite(apriori_at_truth.range) & ~(truth.true_range < apriori_at_truth.range - tol) & \
-        _measured(truth)
+        truth.measured
     sid = np.where(unoccluded, apriori_at_truth.surface_id, -1)
     old_pix = pixels_by_feature(sid, tuple(s.feature_id for s in apriori_at_truth.surfaces))
     out = {}
@@ -55,13 +55,8 @@ def observable_features(truth: ScanTruth, change_truth: ChangeTruth, apriori_at_
     return out
 
 
-def _measured(truth: ScanTruth) -> np.ndarray:
-    """(H, W) bool: pixels where the sensor returned a point (no dropout flag)."""
-    return (truth.flags & FLAG_DROPOUT) == 0
-
-
 def _measured_pixels_by_feature(truth: ScanTruth) -> dict[str, np.ndarray]:
-    sid = np.where(_measured(truth), truth.surface_id, -1)
+    sid = np.where(truth.measured, truth.surface_id, -1)
     return pixels_by_feature(sid, tuple(s.feature_id for s in truth.surfaces))
 
 

@@ -21,10 +21,10 @@ from scenes.features import Cone, Cylinder, Plane, Sphere, Torus
 from scenes.geometry import invert_transform
 from scenes.model import SceneModel
 from scenes.perturb import ChangeTruth
-from sensors.range_image import FLAG_DROPOUT, ScanTruth
+from sensors.range_image import ScanTruth
 
 __all__ = ["rotation_error_deg", "translation_error_mm", "add_mm", "pose_section", "constrains_pose",
-           "changed_features", "twin_ambiguous",
+           "changed_features", "twin_ambiguous", "constrained_view",
            "SUCCESS_ROTATION_DEG", "SUCCESS_TRANSLATION_FRACTION"]
 
 SUCCESS_ROTATION_DEG = 1.0
@@ -175,7 +175,8 @@ def twin_ambiguous(truth: ScanTruth, model: SceneModel, predict, exclude: Collec
     if not np.isfinite(tr).any():
         return False
     scale = float(np.nanmedian(tr))
-    counts = truth.surface_pixel_counts(_measured(truth))
+    measured = np.isfinite(tr) & truth.measured
+    counts = truth.surface_pixel_counts(truth.measured)
     seen = {truth.surfaces[sid].feature_id for sid, n in counts.items() if n >= min_pixels} - set(exclude)
     twins: dict[tuple, np.ndarray] = {}
     for Tp in twin_poses(T, seen, model):
@@ -185,7 +186,6 @@ def twin_ambiguous(truth: ScanTruth, model: SceneModel, predict, exclude: Collec
     if not twins:
         return False
     tol = k_sigma * np.nan_to_num(np.asarray(truth.sigma, dtype=np.float64), nan=0.0) + rel * np.nan_to_num(tr)
-    measured = np.isfinite(tr) & _measured(truth)
 
     def unexplained(pose: np.ndarray, stride: int) -> int:
         pred = predict(pose, stride)
@@ -206,6 +206,17 @@ def twin_ambiguous(truth: ScanTruth, model: SceneModel, predict, exclude: Collec
     return False
 
 
+def constrained_view(truth: ScanTruth, actual: SceneModel, apriori: SceneModel, predict,
+                     exclude: Collection[str] = ()) -> tuple[bool, bool]:
+    """``(constrained, twin_ambiguous)`` of a trial: whether it counts as constraining 6 DOF - its visible
+    surfaces not in ``exclude`` fix the pose locally (:func:`constrains_pose` on the ``actual`` scene) and no twin
+    pose explains its image as well (:func:`twin_ambiguous` against the ``apriori`` model, ``predict`` as there)
+    - and whether a twin pose is what left it out."""
+    local = bool(constrains_pose(truth, actual, exclude=exclude))
+    twin = local and twin_ambiguous(truth, apriori, predict, exclude)
+    return local and not twin, twin
+
+
 def changed_features(changes: ChangeTruth) -> set[str]:
     """Features of the actual scene that cannot locate the sensor against the a priori model (the ``exclude``
     of :func:`constrains_pose`): those the perturbation moved or altered, and the new ones.
@@ -218,16 +229,10 @@ def changed_features(changes: ChangeTruth) -> set[str]:
         set(changes.new_features)
 
 
-def _measured(truth: ScanTruth) -> np.ndarray:
-    """(H, W) bool: the pixels where the sensor returned a point (no dropout flag): a surface closer than the
-    sensor's minimum range, or dark at grazing incidence, is in the truth image but shows nothing."""
-    return (np.asarray(truth.flags) & FLAG_DROPOUT) == 0
-
-
 def constrains_pose(truth: ScanTruth, model: SceneModel, min_pixels: int = MIN_SCORED_PIXELS, *,
                     sigma_angle: float = 0.01, sigma_pos_m: float = 0.01, max_sigma: float = 0.1,
                     exclude: Collection[str] = ()) -> bool:
-    """Whether the truth surfaces visible with >= ``min_pixels`` measured pixels (:func:`_measured`) constrain all
+    """Whether the truth surfaces visible with >= ``min_pixels`` measured pixels (``truth.measured``) constrain all
     6 DOF of the pose.
 
     ``exclude`` names features that cannot locate the sensor against the a priori model: those the
@@ -245,7 +250,7 @@ def constrains_pose(truth: ScanTruth, model: SceneModel, min_pixels: int = MIN_S
     truth : the trial's :class:`sensors.range_image.ScanTruth`.
     model : the scene whose features the truth surfaces name (the actual, perturbed scene).
     """
-    counts = truth.surface_pixel_counts(_measured(truth))
+    counts = truth.surface_pixel_counts(truth.measured)
     T_sw = invert_transform(np.asarray(truth.T_world_sensor, dtype=np.float64))
     by_id = {f.id: f for f in model.features}
     pairs = []

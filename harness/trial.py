@@ -8,6 +8,7 @@ and the :class:`sensors.range_image.ScanTruth` (DESIGN 10.1).
 from __future__ import annotations
 
 import copy
+import functools
 import threading
 import time
 import zlib
@@ -21,7 +22,7 @@ import numpy as np
 from evaluation.change import change_section, kinds_of_features, observable_features
 from evaluation.oracles import truth_classification, truth_pairings, truth_segmentation
 from evaluation.patches import classification_section, segmentation_section
-from evaluation.pose import changed_features, constrains_pose, pose_section, twin_ambiguous
+from evaluation.pose import changed_features, constrained_view, pose_section
 from harness.methods import MethodSpec, call_stage, stage_method
 from harness.suite import VIEW_DISTANCE_BAND, TrialPlan, TrialSpec
 from recognition.change import detect_changes
@@ -265,13 +266,9 @@ class TrialContext:
         self.object_of = {f.id: o.id for m in (prepared.apriori, prepared.actual) for o in m.objects
                           for f in o.features}
         self.kind_of = kinds_of_features(prepared.apriori)  # altered F1 by kind (change.altered_by_kind)
-        # the trial counts as constrained when the visible unchanged surfaces fix the pose locally and no twin
-        # pose of the model's symmetric or repeated structure explains the image as well (DESIGN 10.6)
-        exclude = changed_features(prepared.change_truth)
-        local = bool(constrains_pose(truth, prepared.actual, exclude=exclude))
-        self.twin_ambiguous = local and twin_ambiguous(
-            truth, prepared.apriori, lambda T, stride: prepared.predictor.predict(scan.sensor, T, stride), exclude)
-        self.constrained = local and not self.twin_ambiguous
+        self.constrained, self.twin_ambiguous = constrained_view(
+            truth, prepared.actual, prepared.apriori, functools.partial(prepared.predictor.predict, scan.sensor),
+            changed_features(prepared.change_truth))
 
     @property
     def apriori_at_truth(self):

@@ -97,6 +97,12 @@ class ScanTruth:
     true_range: np.ndarray
     flags: np.ndarray
 
+    @property
+    def measured(self) -> np.ndarray:
+        """(H, W) bool: the pixels where the sensor returned a point (no dropout flag). A surface closer than the
+        sensor's minimum range, or dark at grazing incidence, is in the truth image but shows nothing there."""
+        return (self.flags & FLAG_DROPOUT) == 0
+
     def surface_pixel_counts(self, valid: np.ndarray | None = None) -> dict[int, int]:
         """Pixels per surface index (only where ``valid``, if given), largest first."""
         ids = self.surface_id if valid is None else np.where(valid, self.surface_id, -1)

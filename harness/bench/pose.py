@@ -4,9 +4,9 @@
 perturbed mock-up (``mockup_laser``) and factory bay (``factory_scanner``; ``kinect``: the bay with
 ``kinect_like`` under 4 m, as in the default suite), describes each scan, localises it with no pose prior
 and prints per group: the success rate over the trials whose truth constrains all
-6 DOF (:func:`evaluation.pose.constrains_pose`) and that no twin pose explains as well
-(:func:`evaluation.pose.twin_ambiguous`), median/p90 rotation and translation errors before and
-after ICP, and the time per frame of matching + pose + verification + ICP (and of the final prediction).
+6 DOF and that no twin pose explains as well (:func:`evaluation.pose.constrained_view`), median/p90 rotation
+and translation errors before and after ICP, and the time per frame of matching + pose + verification + ICP
+(and of the final prediction).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ def _stats(values):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from evaluation.pose import changed_features, constrains_pose, pose_section, twin_ambiguous
+    from evaluation.pose import changed_features, constrained_view, pose_section
     from harness.suite import suite_from_dict
     from harness.trial import prepare_scene, sensor_for, trial_scan, trial_viewpoints
     from recognition.describe import describe
@@ -69,9 +69,9 @@ def main(argv: list[str] | None = None) -> int:
         med_range = float(np.nanmedian(truth.true_range))
         pts = scan.points[::8, ::8].reshape(-1, 3)
         pts = pts[np.all(np.isfinite(pts), axis=1)]
-        exclude = changed_features(p.change_truth)
-        constrained = constrains_pose(truth, p.actual, exclude=exclude) and not twin_ambiguous(
-            truth, p.apriori, functools.partial(p.predictor.predict, scan.sensor), exclude)
+        constrained, _ = constrained_view(truth, p.actual, p.apriori,
+                                          functools.partial(p.predictor.predict, scan.sensor),
+                                          changed_features(p.change_truth))
         sec = pose_section(res, truth.T_world_sensor, med_range, constrained, pts)
         t = res.timing_s
         sec["time_core_s"] = t["matching"] + t["pose"] + t["verification"] + t["icp"]

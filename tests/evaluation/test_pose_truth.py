@@ -4,7 +4,7 @@ repeated structure explains as well is not decided by any data, however fine."""
 import numpy as np
 import pytest
 
-from evaluation.pose import twin_ambiguous
+from evaluation.pose import constrains_pose, twin_ambiguous
 from recognition.localisation.prediction import predict
 from scenes import builders
 from scenes.model import SceneModel
@@ -61,15 +61,14 @@ def test_twins_come_only_from_the_features_that_can_locate_the_sensor():
     assert not twin_ambiguous(truth, model, lambda T, s: predict(sim, cam, T, s), exclude=faces)
 
 
-def test_a_surface_without_returns_does_not_constrain_the_pose():
-    """A wall, a floor and a table leave the pose free along the wall; a pipe crossing that direction fixes it,
-    but not when the sensor returned nothing from it (closer than its minimum range: a mock-up trial counted a
-    pipe 0.2 m away, 83785 pixels all dropouts, and the view as constrained)."""
-    from evaluation.pose import constrains_pose
+def _wall_table_pipe(flags: np.ndarray | None = None):
+    """A wall, a floor and a table (two parallel normals), which leave the pose free along the wall, and a pipe
+    crossing that direction, 300 truth pixels each (surface ids 0-3, the pipe 3) of a 30 x 40 image: the truth
+    (``flags`` per pixel, none set by default) and the model."""
     from scenes.features import Cylinder, Plane
     from scenes.mjcf import Surface
     from scenes.model import Object
-    from sensors.range_image import FLAG_DROPOUT, ScanTruth
+    from sensors.range_image import ScanTruth
 
     def plane(fid, c, n):
         return Plane(fid, centre=np.array(c), normal=np.array(n), u_axis=np.array([1.0, 0, 0]), half_size=(2, 1))
@@ -83,14 +82,30 @@ def test_a_surface_without_returns_does_not_constrain_the_pose():
     sid = np.repeat(np.arange(4), 300).reshape(30, 40)
     T = np.eye(4)
     T[:3, 3] = [0, -2.0, 1.0]
+    truth = ScanTruth(T_world_sensor=T, sigma=np.zeros((30, 40)), surface_id=sid, normals=np.zeros((30, 40, 3)),
+                      surfaces=surfaces, true_range=np.ones((30, 40)),
+                      flags=np.zeros((30, 40), np.uint8) if flags is None else flags)
+    return truth, model
 
-    def truth(flags):
-        return ScanTruth(T_world_sensor=T, sigma=np.zeros((30, 40)), surface_id=sid, normals=np.zeros((30, 40, 3)),
-                         surfaces=surfaces, true_range=np.ones((30, 40)), flags=flags)
+
+def test_a_moved_feature_does_not_count_towards_constraining_the_pose():
+    """The pipe fixes the direction along the wall, unless the perturbation moved it (it cannot locate the
+    sensor then)."""
+    truth, model = _wall_table_pipe()
+    assert constrains_pose(truth, model)
+    assert not constrains_pose(truth, model, exclude={"pipe.s0"})
+
+
+def test_a_surface_without_returns_does_not_constrain_the_pose():
+    """Nor does the pipe when the sensor returned nothing from it (closer than its minimum range: a mock-up trial
+    counted a pipe 0.2 m away, 83785 pixels all dropouts, and the view as constrained)."""
+    from sensors.range_image import FLAG_DROPOUT
 
     flags = np.zeros((30, 40), np.uint8)
-    assert constrains_pose(truth(flags), model)
-    flags[sid == 3] = FLAG_DROPOUT
-    assert not constrains_pose(truth(flags), model)
-    flags[(sid == 3) & (np.arange(40)[None, :] < 20)] = 0  # 150 pixels measured: under the 200 of a region
-    assert not constrains_pose(truth(flags), model)
+    assert constrains_pose(*_wall_table_pipe(flags))
+    pipe = _wall_table_pipe()[0].surface_id == 3
+    flags[pipe] = FLAG_DROPOUT
+    truth, model = _wall_table_pipe(flags)
+    assert not constrains_pose(truth, model)
+    flags[pipe & (np.arange(40)[None, :] < 20)] = 0  # 150 pixels measured: under the 200 of a region
+    assert not constrains_pose(*_wall_table_pipe(flags))
