@@ -227,7 +227,8 @@ def _axial_pieces(x: np.ndarray, s: np.ndarray, n: np.ndarray, min_pixels: int, 
 
     The axis is the direction the normals turn about (shared by a pipe and its reducer); the patch is cut
     into slices half a radius long along it (longer on a far, thin pipe, so that they hold ``axial_slice_points``
-    points on average: its slices had 5-10, and none was used). A
+    points on average: its slices had 5-10, and none was used); a slice counts with ``axial_partial_fraction`` of
+    the median slice's points (not one the patch's border crosses). A
     cylinder's slices keep one median distance to the axis, a cone's change it linearly (so does a cylinder's
     under a slightly tilted axis), so the profile of one surface is a line, within
     ``max(3 sigma of the median, axial_flat_fraction * radius)`` per slice. A profile that is not is cut where two
@@ -347,6 +348,8 @@ def _axial_cut(x: np.ndarray, s: np.ndarray, point: np.ndarray, axis: np.ndarray
     nb = int(b.max()) + 1
     cnt = np.bincount(b, minlength=nb)
     full = np.flatnonzero(cnt >= 20)
+    if full.size:  # not the slices the patch's border crosses (SegmentationParams.axial_partial_fraction)
+        full = np.flatnonzero(cnt >= max(20.0, params.axial_partial_fraction * float(np.median(cnt[full]))))
     if full.size < 2 * min_bins:
         return None
     order = np.lexsort((rho, b))

@@ -177,6 +177,11 @@ class SegmentationParams:
         The axial cut's profile (:func:`_axial_pieces`): points of its section fit; a profile is one line within
         ``max(3 sigma, axial_flat_fraction * radius)`` per slice; slices each side of a cut at least; points
         per slice on average (slices are longer than half a radius on a far, thin pipe).
+    axial_partial_fraction : float
+        A slice takes part in the axial profile when it holds at least this fraction of the median slice's
+        points (and 20): a slice the patch's border crosses (its end, cut obliquely or by an occluder) holds
+        part of the pipe's circumference and mixed pixels, and its median distance to the axis is off the
+        line; one such slice at the end of a pipe, reducer and pipe kept any three lines from fitting.
     elbow_cut_keep, elbow_cut_rounds, elbow_cut_k : float, int, float (sigma)
         The cut of two pipes merged with their elbow (:func:`_dominant_cylinder`): the fraction of normals (and
         of section points) kept nearest the dominant pipe, over this many trimming rounds; the pipe takes the
@@ -280,6 +285,10 @@ class SegmentationParams:
     axial_slice_points: int = tuned(
         25, unit="points", chosen="calibration (phase 1), with axis_split_pixels 400: pooled correct detection "
         "0.730 -> 0.739 (half a radius held 5-10 points on far thin pipes; 062236b)")
+    axial_partial_fraction: float = tuned(
+        0.5, unit="fraction", chosen="calibration: correct detection of the Kinect-like group 0.692 -> 0.707 / 0.707 / "
+        "0.723 / 0.713 at 0.25 / 0.35 / 0.5 / 0.75 (factory scanner 0.770 -> 0.770 / 0.770 / 0.769 / 0.773, mock-up "
+        "0.880 throughout; the segmenter's labels on the 96 frames)")
     elbow_cut_keep: float = tuned(0.6, unit="fraction", chosen="not tuned: set with the elbow cut in 336d4d7")
     elbow_cut_rounds: int = tuned(4, unit="count", chosen="not tuned: set with the elbow cut in 336d4d7")
     elbow_cut_k: float = tuned(3.0, unit="sigma", chosen="not tuned: set with the elbow cut in 336d4d7")
@@ -357,7 +366,7 @@ class SegmentationParams:
             v = getattr(self, name)
             if not v > 0:
                 raise ValueError(f"{name} must be > 0, got {v!r}")
-        for name in ("face_keep", "elbow_cut_keep", "thin_peel_fraction", "stair_fraction"):
+        for name in ("face_keep", "elbow_cut_keep", "thin_peel_fraction", "stair_fraction", "axial_partial_fraction"):
             v = getattr(self, name)
             if not 0 < v <= 1:
                 raise ValueError(f"{name} must be in (0, 1], got {v!r}")
