@@ -87,6 +87,8 @@ class IcpResult:
     free_dof_without_one : the most directions left unconstrained when the correspondences of one movable model
         object (any kind but :data:`STABLE_KINDS`) are left out; ``resting_on`` that object's id ("" when none
         leaves a direction free).
+    loose_without_one : the same with directions counted when the rest fixes them no better than the
+        ``tolerance`` of :func:`icp_refine` (``free_dof_without_one`` without one); ``loose_on`` that object.
     """
 
     ok: bool
@@ -99,6 +101,8 @@ class IcpResult:
     free_dof: int
     free_dof_without_one: int = 0
     resting_on: str = ""
+    loose_without_one: int = 0
+    loose_on: str = ""
 
 
 def model_normals(model: SceneModel, feature_ids: np.ndarray, parts: np.ndarray, points: np.ndarray
@@ -144,7 +148,8 @@ def _info(src_w: np.ndarray, tgt: np.ndarray, nrm: np.ndarray) -> tuple[np.ndarr
 
 
 def icp_refine(scan: Scan, prediction: Prediction, model: SceneModel, T_init: np.ndarray | None = None,
-               params: IcpParams = IcpParams(), source_mask: np.ndarray | None = None) -> IcpResult:
+               params: IcpParams = IcpParams(), source_mask: np.ndarray | None = None,
+               tolerance: tuple[float, float] | None = None) -> IcpResult:
     """Refine ``T_world_sensor`` (default: the prediction's pose) against the predicted-visible model.
 
     Parameters
@@ -155,6 +160,11 @@ def icp_refine(scan: Scan, prediction: Prediction, model: SceneModel, T_init: np
     T_init : ndarray of shape (4, 4), the starting pose.
     params : :class:`IcpParams`.
     source_mask : optional bool (H, W): the scan pixels that may be source points (default: all valid).
+    tolerance : ``(degrees, fraction of the median range)``, optional: a direction counts as free without one
+        movable object (``free_dof_without_one``) when the rest of the correspondences leave it a standard
+        deviation beyond this, not only beyond the 0.1 (rad, or median ranges) that makes a direction free:
+        a pose whose other surfaces fix it to 5 deg is not fixed to the 1 deg it claims, and the object (a moved
+        pipe run) carries it the rest of the way.
 
     Returns
     -------
@@ -201,15 +211,20 @@ def icp_refine(scan: Scan, prediction: Prediction, model: SceneModel, T_init: np
     from .pose import free_dof_of
 
     free, _ = free_dof_of(Ji, med_range, 0.1)
-    free_without, resting_on = 0, ""
+    free_without, resting_on, loose_without, loose_on = 0, "", 0, ""
     objs = objects[corr[:, 1]][inl]
     for o in sorted(set(objs.tolist()) - {""}):  # each movable object left out in turn
         k, _ = free_dof_of(Ji[objs != o], med_range, 0.1)
         if k > free_without:
             free_without, resting_on = k, o
+        if tolerance is not None:  # free beyond the tolerance (translations scaled so that both parts are 1 sigma)
+            k, _ = free_dof_of(Ji[objs != o], med_range * math.radians(tolerance[0]) / tolerance[1],
+                               math.radians(tolerance[0]))
+        if k > loose_without:
+            loose_without, loose_on = k, o
     cov = np.linalg.pinv(info, rcond=1e-12, hermitian=True)
     return IcpResult(True, "", T, cov, float(res.fitness), float(np.sqrt(np.mean(r[inl] ** 2))), len(corr), free,
-                     free_without, resting_on)
+                     free_without, resting_on, loose_without, loose_on)
 
 
 def _target(prediction: Prediction, model: SceneModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
