@@ -160,8 +160,8 @@ def icp_refine(scan: Scan, prediction: Prediction, model: SceneModel, T_init: np
     T_init : ndarray of shape (4, 4), the starting pose.
     params : :class:`IcpParams`.
     source_mask : optional bool (H, W): the scan pixels that may be source points (default: all valid).
-    tolerance : ``(degrees, fraction of the median range)``, optional: a direction counts as free without one
-        movable object (``free_dof_without_one``) when the rest of the correspondences leave it a standard
+    tolerance : ``(degrees, fraction of the median range)``, optional: a direction counts as loose without one
+        movable object (``loose_without_one``) when the rest of the correspondences leave it a standard
         deviation beyond this, not only beyond the 0.1 (rad, or median ranges) that makes a direction free:
         a pose whose other surfaces fix it to 5 deg is not fixed to the 1 deg it claims, and the object (a moved
         pipe run) carries it the rest of the way.
@@ -213,15 +213,16 @@ def icp_refine(scan: Scan, prediction: Prediction, model: SceneModel, T_init: np
     free, _ = free_dof_of(Ji, med_range, 0.1)
     free_without, resting_on, loose_without, loose_on = 0, "", 0, ""
     objs = objects[corr[:, 1]][inl]
+    if tolerance is not None:  # translations scaled so that both parts of the tolerance are one sigma
+        loose_length, loose_sigma = med_range * math.radians(tolerance[0]) / tolerance[1], math.radians(tolerance[0])
     for o in sorted(set(objs.tolist()) - {""}):  # each movable object left out in turn
-        k, _ = free_dof_of(Ji[objs != o], med_range, 0.1)
+        rest = Ji[objs != o]
+        k, _ = free_dof_of(rest, med_range, 0.1)
+        loose = k if tolerance is None else free_dof_of(rest, loose_length, loose_sigma)[0]
         if k > free_without:
             free_without, resting_on = k, o
-        if tolerance is not None:  # free beyond the tolerance (translations scaled so that both parts are 1 sigma)
-            k, _ = free_dof_of(Ji[objs != o], med_range * math.radians(tolerance[0]) / tolerance[1],
-                               math.radians(tolerance[0]))
-        if k > loose_without:
-            loose_without, loose_on = k, o
+        if loose > loose_without:
+            loose_without, loose_on = loose, o
     cov = np.linalg.pinv(info, rcond=1e-12, hermitian=True)
     return IcpResult(True, "", T, cov, float(res.fitness), float(np.sqrt(np.mean(r[inl] ** 2))), len(corr), free,
                      free_without, resting_on, loose_without, loose_on)
