@@ -66,9 +66,12 @@ def _groups(labels: np.ndarray) -> dict[int, np.ndarray]:
     """Flat pixel indices of each label >= 0 (increasing), by counting (:func:`.kernels.group_order`; the
     reference is :func:`_groups_reference`)."""
     flat = labels.ravel()
-    if flat.size == 0 or flat.max() < 0:
+    top = int(flat.max()) if flat.size else -1
+    if top < 0:
         return {}
-    order, starts, counts = kernels.group_order(flat.astype(np.int64), int(flat.max()) + 1)
+    if flat.dtype not in (np.int32, np.int64):
+        flat = flat.astype(np.int64)
+    order, starts, counts = kernels.group_order(flat, top + 1)
     return {k: order[s:s + c] for k, s, c in zip(np.flatnonzero(counts).tolist(), starts[counts > 0].tolist(),
                                                   counts[counts > 0].tolist(), strict=True)}
 
@@ -93,7 +96,18 @@ def _rms(z: np.ndarray) -> float:
 
 
 def _planar_groups(groups: list[np.ndarray], hk: np.ndarray) -> np.ndarray:
-    """(G,) bool: :func:`_is_planar_counts` of each group's curvature classes ``hk`` (flat, 0..4), in one count."""
+    """(G,) bool: :func:`_is_planar_counts` of each group's curvature classes ``hk`` (flat, int64, 0..4), in one
+    count (:func:`.kernels.class_counts`; the reference is :func:`_planar_groups_reference`)."""
+    if not groups:
+        return np.zeros(0, bool)
+    sizes = np.fromiter((g.size for g in groups), np.int64, len(groups))
+    ix = np.concatenate(groups).astype(np.int64, copy=False)
+    c = kernels.class_counts(hk, ix, sizes)
+    return c[:, 1] >= c[:, 1:].max(axis=1)
+
+
+def _planar_groups_reference(groups: list[np.ndarray], hk: np.ndarray) -> np.ndarray:
+    """:func:`_planar_groups` by one ``np.bincount``."""
     if not groups:
         return np.zeros(0, bool)
     sizes = np.fromiter((g.size for g in groups), np.int64, len(groups))

@@ -26,8 +26,8 @@ from numba import njit
 from recognition.fitting import MIN_GRAZING
 
 __all__ = [
-    "checked_returns", "curvatures", "grow", "group_order", "jump_pairs", "masked_fits", "quick_fits",
-    "ray_z_by_label", "savgol_derivatives", "warm_up",
+    "checked_returns", "class_counts", "curvatures", "grow", "group_order", "jump_pairs", "masked_fits", "quick_fits",
+    "next_candidates", "ray_z_by_label", "reassign_targets", "savgol_derivatives", "warm_up",
 ]
 
 
@@ -84,7 +84,7 @@ def group_order(flat, n_labels):
 
     Parameters
     ----------
-    flat : ndarray of shape (N,), int
+    flat : ndarray of shape (N,), int (any width: compiled once per integer type)
         Labels, all < ``n_labels``.
     n_labels : int
     """
@@ -105,6 +105,33 @@ def group_order(flat, n_labels):
             order[fill[v]] = i
             fill[v] += 1
     return order, starts, counts
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def class_counts(hk, ix, sizes):
+    """How many points of each group fall in each curvature class: the kernel of
+    :func:`recognition.segmentation.grid._planar_groups_reference`'s count.
+
+    Parameters
+    ----------
+    hk : ndarray of shape (N,), int
+        Each pixel's H-K class, 0..4.
+    ix : ndarray of shape (M,), int
+        The groups' flat pixel indices, one group after the other.
+    sizes : ndarray of shape (G,), int
+        Each group's number of pixels (summing to M).
+
+    Returns
+    -------
+    ndarray of shape (G, 5), int64
+    """
+    out = np.zeros((sizes.shape[0], 5), np.int64)
+    t = 0
+    for g in range(sizes.shape[0]):
+        for _ in range(sizes[g]):
+            out[g, hk[ix[t]]] += 1
+            t += 1
+    return out
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -189,6 +216,75 @@ def grow(flat, P, X, U, S, steps, link_ok, H, W, max_iter, thr):
         for j in range(nf):
             mark[front[j]] = False
     return flat
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def reassign_targets(flat, P, X, U, S, cand, steps, link_ok, fragment, margin, thr):
+    """One round of the border reassignment's choice: the kernel of
+    :func:`recognition.segmentation.reassignment._targets_reference` (its arguments and result).
+
+    Each candidate pixel keeps its label unless a linked neighbour's patch (of another label) fits it within
+    ``thr`` and ``margin`` better than its own (a fragment's own residual counts as inf); of several, the
+    first direction that beats the best so far by the margin.
+
+    Parameters
+    ----------
+    flat : ndarray of shape (H*W,), int
+        Labels (every candidate's >= 0).
+    P : ndarray of shape (G, 10)
+        Each label's quadric.
+    X, U : ndarray of shape (H*W, 3); S : ndarray of shape (H*W,)
+        Points, unit rays and sigma of the image.
+    cand : ndarray of shape (N,), int
+        Candidate pixels (flat indices).
+    steps : ndarray of shape (4,), int; link_ok : ndarray of shape (4, H*W), bool
+        Flat offset of each link direction and whether each pixel's link that way is allowed.
+    fragment : ndarray of shape (G,), bool
+    margin, thr : float
+        Sigma.
+
+    Returns
+    -------
+    ndarray of shape (N,), int64: each candidate's label after the round
+    """
+    n = cand.shape[0]
+    last = flat.shape[0] - 1
+    out = np.empty(n, np.int64)
+    for j in range(n):
+        i = cand[j]
+        own = flat[i]
+        x0, x1, x2, u0, u1, u2, s = X[i, 0], X[i, 1], X[i, 2], U[i, 0], U[i, 1], U[i, 2], S[i]
+        best_z = np.inf if fragment[own] else _z_one(P, own, x0, x1, x2, u0, u1, u2, s)
+        best_l = own
+        for k in range(4):
+            if not link_ok[k, i]:
+                continue
+            q = flat[min(max(i + steps[k], 0), last)]
+            if q < 0 or q == own:
+                continue
+            z = _z_one(P, q, x0, x1, x2, u0, u1, u2, s)
+            if z + margin < best_z and z <= thr:
+                best_z = z
+                best_l = q
+        out[j] = best_l
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def next_candidates(flat, cand, moved, steps, link_ok):
+    """The border reassignment's next candidates: the kernel of
+    :func:`recognition.segmentation.reassignment._next_candidates_reference` (its arguments and result: the
+    sorted union of ``cand`` and the labelled pixels linked to a ``moved`` one)."""
+    mark = np.zeros(flat.shape[0], np.bool_)
+    for i in cand:
+        mark[i] = True
+    for i in moved:
+        for k in range(4):
+            if link_ok[k, i]:
+                a = i + steps[k]
+                if flat[a] >= 0:
+                    mark[a] = True
+    return np.flatnonzero(mark)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -548,10 +644,22 @@ def masked_fits(points, sigma, rng, rows, cols, window, jump_k, jump_tan, alpha,
         dv[w] = w // window - h
         du[w] = w % window - h
     Xd = np.empty((nw, 6))
+    ang = np.empty(nw)  # each window pixel's ray angle to the centre
     for w in range(nw):
         a, b = float(du[w]), float(dv[w])
         Xd[w, 0], Xd[w, 1], Xd[w, 2], Xd[w, 3], Xd[w, 4], Xd[w, 5] = 1.0, a, b, a * a, a * b, b * b
+        ang[w] = alpha * np.hypot(du[w], dv[w])
+    # the products of the design's columns, upper triangle (a <= b) in row order: M is their masked sum, and
+    # its lower triangle (the same products, commuted) the mirror of the upper
+    XX = np.empty((nw, 21))
+    for w in range(nw):
+        t = 0
+        for a in range(6):
+            for b in range(a, 6):
+                XX[w, t] = Xd[w, a] * Xd[w, b]
+                t += 1
     M = np.empty((6, 6))
+    Mu = np.empty(21)
     inv = np.empty((6, 6))
     rhs = np.empty((6, 3))
     mf = np.zeros(nw, np.bool_)
@@ -562,6 +670,7 @@ def masked_fits(points, sigma, rng, rows, cols, window, jump_k, jump_tan, alpha,
         r, c = rows[p], cols[p]
         rc = rng[r, c]
         sc2 = sigma[r, c] ** 2
+        tan_r = jump_tan * rc
         count = 0
         row_hit[:] = False
         col_hit[:] = False
@@ -570,7 +679,7 @@ def masked_fits(points, sigma, rng, rows, cols, window, jump_k, jump_tan, alpha,
             mf[w] = False
             if rr < 0 or rr >= H or cc < 0 or cc >= W:
                 continue
-            thr = jump_k * np.sqrt(sc2 + sigma[rr, cc] ** 2) + jump_tan * rc * (alpha * np.hypot(du[w], dv[w]))
+            thr = jump_k * np.sqrt(sc2 + sigma[rr, cc] ** 2) + tan_r * ang[w]
             if abs(rng[rr, cc] - rc) <= thr:
                 mf[w] = True
                 count += 1
@@ -578,7 +687,7 @@ def masked_fits(points, sigma, rng, rows, cols, window, jump_k, jump_tan, alpha,
                 col_hit[du[w] + h] = True
         if count < min_support or row_hit.sum() < 3 or col_hit.sum() < 3:
             continue
-        M[:, :] = 0.0
+        Mu[:] = 0.0
         rhs[:, :] = 0.0
         x0, x1, x2 = points[r, c, 0], points[r, c, 1], points[r, c, 2]
         for w in range(nw):
@@ -586,13 +695,18 @@ def masked_fits(points, sigma, rng, rows, cols, window, jump_k, jump_tan, alpha,
                 continue
             rr, cc = r + dv[w], c + du[w]
             e0, e1, e2 = points[rr, cc, 0] - x0, points[rr, cc, 1] - x1, points[rr, cc, 2] - x2
+            for t in range(21):
+                Mu[t] += XX[w, t]
             for a in range(6):
                 xa = Xd[w, a]
-                for b in range(6):
-                    M[a, b] += xa * Xd[w, b]
                 rhs[a, 0] += e0 * xa
                 rhs[a, 1] += e1 * xa
                 rhs[a, 2] += e2 * xa
+        t = 0
+        for a in range(6):
+            for b in range(a, 6):
+                M[a, b] = M[b, a] = Mu[t]
+                t += 1
         tr = 0.0
         for a in range(6):
             tr += M[a, a]
@@ -718,12 +832,16 @@ def warm_up() -> None:
     S = np.full(4, 0.01)
     lab = np.zeros(4, np.int64)
     ray_z_by_label(P, lab, X, U, S)
-    group_order(np.array([0, -1, 0, 0], np.int64), 1)
+    for dtype in (np.int32, np.int64):  # label images of both widths
+        group_order(np.array([0, -1, 0, 0], dtype), 1)
+    class_counts(lab, lab, np.array([2, 2], np.int64))
     flat = np.array([0, -1, -1, -1], np.int64)
     steps = np.array([-1, 1, -2, 2], np.int64)
     ok = np.zeros((4, 4), np.bool_)
     ok[0, 1:] = True
     grow(flat, P, X, U, S, steps, ok, 2, 2, 3, 3.0)
+    reassign_targets(flat, P, X, U, S, lab, steps, ok, np.zeros(1, np.bool_), 1.0, 3.0)
+    next_candidates(flat, lab, lab, steps, ok)
     jump_pairs(np.ones((2, 2)), np.ones((2, 2)), np.ones((2, 2, 3)), 3.0, 2.0)
     one, three = np.ones((1, 1)), np.ones((1, 1, 3))
     checked_returns(three, one, 1e-4)

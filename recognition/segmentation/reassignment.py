@@ -9,6 +9,7 @@ import numpy as np
 
 from recognition.fitting.algebra import gradient
 
+from . import kernels
 from .grid import _groups, _State
 from .quick_fits import _fit_groups, _pixel_residuals
 from .types import SegmentationParams
@@ -64,42 +65,69 @@ def _reassign(labels: np.ndarray, st: _State, params: SegmentationParams, links,
     for _ in range(rounds):
         if cand.size == 0:
             break
-        nb = cand[None, :] + steps[:, None]
-        nl = np.where(ok[:, cand], flat[np.clip(nb, 0, H * W - 1)], -1)
         own = flat[cand]
-        x, u, s = st.X[cand], st.U[cand], st.S[cand]
-        best_z = _pixel_residuals(P, own, x, u, s)
-        best_z[fragment[own]] = np.inf
-        best_l = own.copy()
-        for k in range(len(steps)):
-            m = (nl[k] >= 0) & (nl[k] != own)
-            if not m.any():
-                continue
-            z = np.full(cand.size, np.inf)
-            z[m] = _pixel_residuals(P, nl[k, m], x[m], u[m], s[m])
-            b = (z + margin < best_z) & (z <= thr)
-            best_z[b] = z[b]
-            best_l[b] = nl[k, b]
+        best_l = _targets(flat, P, st, cand, steps, ok, fragment, margin, thr)
         mv = best_l != own
         if not mv.any():
             break
         moved, src, dst = cand[mv], own[mv], best_l[mv]
         flat[moved] = dst
-        # refit the small patches that lost or gained pixels (a large one hardly changes)
+        # refit the small patches that lost or gained pixels (a large one hardly changes); a patch's pixels that
+        # moved are those no longer labelled with it, the others keep their order and the gained ones follow
         redo = {}
         for lab in np.unique(np.concatenate([src, dst])).tolist():
             if lab in small:
                 v = small[lab]
-                v = np.concatenate([v[~np.isin(v, moved[src == lab])], moved[dst == lab]])
+                v = np.concatenate([v[flat[v] == lab], moved[dst == lab]])
                 small[lab] = redo[lab] = v
         redo = {k: v for k, v in redo.items() if v.size}
         if redo:
             Pc = _fit_groups(redo, st, params, n, trim=thr)
             keys = list(redo)
             P[keys] = Pc[keys]
-        nxt = (moved[None, :] + steps[:, None])[ok[:, moved]]
-        cand = np.union1d(cand, nxt[flat[nxt] >= 0])
+        cand = kernels.next_candidates(flat, cand, moved, steps, ok)
     return out
+
+
+def _targets(flat: np.ndarray, P: np.ndarray, st: _State, cand: np.ndarray, steps: np.ndarray, ok: np.ndarray,
+             fragment: np.ndarray, margin: float, thr: float) -> np.ndarray:
+    """Each candidate pixel's label after one round of :func:`_reassign` (N,): the compiled
+    :func:`.kernels.reassign_targets`, whose reference is :func:`_targets_reference`.
+
+    ``flat`` (H*W,) labels, ``P`` (G, 10) each label's quadric, ``cand`` (N,) flat pixel indices (labelled),
+    ``steps`` and ``ok`` of :func:`_flat_links`, ``fragment`` (G,) bool, ``margin`` and ``thr`` in sigma.
+    """
+    return kernels.reassign_targets(flat, P, st.X, st.U, st.S, cand, steps, ok, fragment, float(margin), float(thr))
+
+
+def _targets_reference(flat: np.ndarray, P: np.ndarray, st: _State, cand: np.ndarray, steps: np.ndarray,
+                       ok: np.ndarray, fragment: np.ndarray, margin: float, thr: float) -> np.ndarray:
+    """:func:`_targets` in numpy, one direction at a time for all candidates."""
+    nb = cand[None, :] + steps[:, None]
+    nl = np.where(ok[:, cand], flat[np.clip(nb, 0, flat.size - 1)], -1)
+    own = flat[cand]
+    x, u, s = st.X[cand], st.U[cand], st.S[cand]
+    best_z = _pixel_residuals(P, own, x, u, s)
+    best_z[fragment[own]] = np.inf
+    best_l = own.astype(np.int64)
+    for k in range(len(steps)):
+        m = (nl[k] >= 0) & (nl[k] != own)
+        if not m.any():
+            continue
+        z = np.full(cand.size, np.inf)
+        z[m] = _pixel_residuals(P, nl[k, m], x[m], u[m], s[m])
+        b = (z + margin < best_z) & (z <= thr)
+        best_z[b] = z[b]
+        best_l[b] = nl[k, b]
+    return best_l
+
+
+def _next_candidates_reference(flat: np.ndarray, cand: np.ndarray, moved: np.ndarray, steps: np.ndarray,
+                               ok: np.ndarray) -> np.ndarray:
+    """The sorted union of the candidates ``cand`` and the labelled pixels linked to a ``moved`` one (the
+    reference of :func:`.kernels.next_candidates`)."""
+    nxt = (moved[None, :] + steps[:, None])[ok[:, moved]]
+    return np.union1d(cand, nxt[flat[nxt] >= 0])
 
 
 def _complete_borders(labels: np.ndarray, st: _State, params: SegmentationParams, links,

@@ -68,11 +68,12 @@ def test_ray_z_by_label_equals_ray_z(seed, n_quadrics):
 @given(st.lists(st.integers(-1, 12), min_size=0, max_size=300), st.integers(1, 40))
 @settings(max_examples=60, deadline=None)
 def test_groups_equal_value_indices(values, width):
-    labels = np.array(values + [-1] * (-len(values) % width), np.int32).reshape(-1, width)
-    got, want = _groups(labels), _groups_reference(labels)
-    assert list(got) == list(want)
-    for k in want:
-        np.testing.assert_array_equal(got[k], want[k])
+    for dtype in (np.int32, np.int64, np.int16):  # the kernel's two compiled widths, and a conversion
+        labels = np.array(values + [-1] * (-len(values) % width), dtype).reshape(-1, width)
+        got, want = _groups(labels), _groups_reference(labels)
+        assert list(got) == list(want)
+        for k in want:
+            np.testing.assert_array_equal(got[k], want[k])
 
 
 @given(SEEDS, st.floats(0.0, 0.3), st.floats(0.0, 0.5))
@@ -261,11 +262,69 @@ def test_savgol_derivatives_equal_ndimage(seed, window, h, w):
 @given(st.lists(st.lists(st.integers(0, 4), min_size=0, max_size=30), min_size=0, max_size=12))
 @settings(max_examples=60, deadline=None)
 def test_planar_groups_equal_the_per_group_counts(classes):
-    """The planar test of many groups in one count == group by group (a group of no pixel is planar)."""
-    from recognition.segmentation.grid import _is_planar_counts, _planar_groups
+    """The planar test of many groups in one count (compiled, and its bincount reference) == group by group (a
+    group of no pixel is planar); the groups' pixels in any order."""
+    from recognition.segmentation.grid import _is_planar_counts, _planar_groups, _planar_groups_reference
 
     hk = np.array([c for g in classes for c in g], np.int64)
     bounds = np.cumsum([0] + [len(g) for g in classes])
-    groups = [np.arange(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
-    want = [_is_planar_counts(np.bincount(hk[g], minlength=5)) for g in groups]
-    np.testing.assert_array_equal(_planar_groups(groups, hk), np.array(want, bool))
+    order = np.random.default_rng(len(hk)).permutation(len(hk))
+    groups = [order[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    want = np.array([_is_planar_counts(np.bincount(hk[g], minlength=5)) for g in groups], bool)
+    np.testing.assert_array_equal(_planar_groups(groups, hk), want)
+    np.testing.assert_array_equal(_planar_groups_reference(groups, hk), want)
+
+
+def _patchy_state(seed: int, h: int, w: int, n_labels: int):
+    """A wavy image cut into random rectangular patches (some pixels unlabelled), each with a perturbed plane:
+    the state, flat labels (h*w,), the planes (n_labels, 10) and the links' steps and flags."""
+    from recognition.segmentation.reassignment import _flat_links
+
+    pts, sigma = _wavy_image(seed, h, w, 0.05, 0.3)
+    gen = np.random.default_rng(seed)
+    valid = np.isfinite(sigma)
+    rng = np.linalg.norm(pts, axis=-1)
+    rays = pts / rng[..., None]
+    jump_h, jump_v = jump_pairs(rng, sigma, rays, 3.0, 2.0)
+    links = _neighbour_links(valid.shape, valid, jump_h, jump_v)
+    st_ = _State(X=pts.reshape(-1, 3), U=rays.reshape(-1, 3), S=sigma.ravel(), hk=np.ones(valid.size, np.int64))
+    labels = np.full(valid.shape, -1, np.int32)
+    for k in range(3 * n_labels):
+        r, c = gen.integers(0, h), gen.integers(0, w)
+        labels[r:r + gen.integers(1, 8), c:c + gen.integers(1, 8)] = k % n_labels
+    labels[~valid] = -1
+    P = np.zeros((n_labels, 10))
+    P[:, 6:9] = gen.normal(0.0, 0.05, (n_labels, 3)) + [0.0, 0.0, 1.0]
+    P[:, 9] = -gen.uniform(1.9, 2.2, n_labels)
+    P[gen.random(n_labels) < 0.1] = np.nan  # a patch without a fit
+    steps, ok = _flat_links(links, w)
+    return st_, labels.ravel(), P, steps, ok
+
+
+@given(SEEDS, st.integers(1, 12), st.floats(0.0, 3.0), st.floats(0.5, 60.0))
+@settings(max_examples=40, deadline=None)
+def test_reassign_targets_equal_the_reference(seed, n_labels, margin, thr):
+    from recognition.segmentation.reassignment import _targets, _targets_reference
+
+    st_, flat, P, steps, ok = _patchy_state(seed, 19, 25, n_labels)
+    gen = np.random.default_rng(seed)
+    cand = np.flatnonzero((flat >= 0) & (gen.random(flat.size) < 0.5))
+    fragment = gen.random(n_labels) < 0.3
+    got = _targets(flat, P, st_, cand, steps, ok, fragment, margin, thr)
+    want = _targets_reference(flat, P, st_, cand, steps, ok, fragment, margin, thr)
+    np.testing.assert_array_equal(got, want)
+
+
+@given(SEEDS, st.integers(1, 12))
+@settings(max_examples=40, deadline=None)
+def test_next_candidates_equal_the_reference(seed, n_labels):
+    from recognition.segmentation.reassignment import _next_candidates_reference
+
+    st_, flat, P, steps, ok = _patchy_state(seed, 19, 25, n_labels)
+    gen = np.random.default_rng(seed)
+    labelled = np.flatnonzero(flat >= 0)
+    cand = np.sort(gen.choice(labelled, labelled.size // 3, replace=False)) if labelled.size else labelled
+    moved = cand[gen.random(cand.size) < 0.4]
+    got = kernels.next_candidates(flat, cand, moved, steps, ok)
+    np.testing.assert_array_equal(got, _next_candidates_reference(flat, cand, moved, steps, ok))
+
