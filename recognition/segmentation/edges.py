@@ -10,7 +10,7 @@ import scipy.ndimage as ndi
 
 from . import kernels
 from .derivatives import clean_windows, jump_pairs, savgol_kernels
-from .grid import _Grid
+from .grid import _bin_medians, _Grid
 from .types import EdgeType, SegmentationParams
 
 
@@ -29,7 +29,9 @@ def _image_grid(points: np.ndarray, sigma: np.ndarray,
         scale = noise_scale(rng, sig, valid, jump_h, jump_v, params.window, params.max_noise_scale,
                             params.noise_block)
         sig = sig * scale
-        jump_h, jump_v = jump_pairs(rng, sig, rays, params.jump_k, params.jump_tan)
+        # the scale is >= 1: a larger sigma only raises the thresholds, so the jumps are among the first ones
+        jump_h, jump_v = kernels.jump_pairs_among(rng, sig, rays, float(params.jump_k),
+                                                  float(params.jump_tan), jump_h, jump_v)
     return _Grid(pts, sig, valid, rng, rays, jump_h, jump_v), declared, scale
 
 
@@ -95,16 +97,13 @@ def noise_scale(rng: np.ndarray, sigma: np.ndarray, valid: np.ndarray, jump_h: n
     glob = float(np.median(az))
     if not np.isfinite(glob):
         return ones
-    # per-block medians (sort by block, then the middle element of each run)
+    # per-block medians (the middle element of each block's sorted values)
     nbr, nbc = -(-len(rs) // block), -(-len(cs) // block)
     b = (si // block) * nbc + (sj // block)
-    order = np.lexsort((az, b))
-    bs, azs = b[order], az[order]
-    cnt = np.bincount(bs, minlength=nbr * nbc)
-    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+    cnt = np.bincount(b, minlength=nbr * nbc)
     med = np.full(nbr * nbc, glob)
     ok = cnt >= 16
-    med[ok] = azs[start[ok] + cnt[ok] // 2]
+    med[ok] = _bin_medians(az, b, nbr * nbc, np.flatnonzero(ok))
     med = ndi.median_filter(med.reshape(nbr, nbc), size=3, mode="nearest")
     med = np.clip(med, 1.0, max_scale)
     pix_r = np.minimum(np.arange(H) // (step * block), nbr - 1)

@@ -91,6 +91,18 @@ def _subsample(idx: np.ndarray, n_max: int) -> np.ndarray:
     return idx[np.linspace(0, idx.size - 1, n_max).astype(np.int64)]
 
 
+def _bin_medians(values: np.ndarray, bins: np.ndarray, n_bins: int, which: np.ndarray) -> np.ndarray:
+    """The upper median (the element of rank ``count // 2``) of the ``values`` (N,) in each bin ``which`` (M,)
+    of ``bins`` (N,), int 0..n_bins-1: the bins' pixels by counting (:func:`.kernels.group_order`), then a
+    selection in each, in place of one sort of all values by bin and value."""
+    order, starts, counts = kernels.group_order(bins, n_bins)
+    out = np.empty(which.size)
+    for j, k in enumerate(which.tolist()):
+        c = int(counts[k])
+        out[j] = np.partition(values[order[starts[k]:starts[k] + c]], c // 2)[c // 2]
+    return out
+
+
 def _rms(z: np.ndarray) -> float:
     return float(np.sqrt(z @ z / z.size)) if z.size else float("inf")
 

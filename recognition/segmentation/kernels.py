@@ -26,8 +26,9 @@ from numba import njit
 from recognition.fitting import MIN_GRAZING
 
 __all__ = [
-    "checked_returns", "class_counts", "curvatures", "grow", "group_order", "jump_pairs", "masked_fits", "quick_fits",
-    "next_candidates", "ray_z_by_label", "reassign_targets", "savgol_derivatives", "warm_up",
+    "checked_returns", "class_counts", "curvatures", "grow", "group_order", "jump_pairs", "jump_pairs_among",
+    "masked_fits", "next_candidates", "quick_fits", "ray_z_by_label", "reassign_targets", "savgol_derivatives",
+    "warm_up",
 ]
 
 
@@ -356,6 +357,29 @@ def jump_pairs(rng, sigma, rays, k_sigma, tan_max_incidence):
                                     rays[i, j, 2] - rays[i + 1, j, 2], k_sigma, tan_max_incidence)
     return jump_h, jump_v
 
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def jump_pairs_among(rng, sigma, rays, k_sigma, tan_max_incidence, among_h, among_v):
+    """:func:`jump_pairs` tested only at the pairs flagged in ``among_h`` (H, W - 1) and ``among_v`` (H - 1, W):
+    ``jump_pairs(...) & among``, the same test at each, the others False. With a sigma nowhere smaller than
+    the one ``among`` was found with, those are all the jumps (a larger sigma only raises the threshold: in
+    floating point too, every operation of it being monotonic)."""
+    H, W = rng.shape
+    jump_h = np.zeros((H, max(W - 1, 0)), np.bool_)
+    jump_v = np.zeros((max(H - 1, 0), W), np.bool_)
+    for i in range(H):
+        for j in range(W - 1):
+            if among_h[i, j]:
+                jump_h[i, j] = _is_jump(rng[i, j], rng[i, j + 1], sigma[i, j], sigma[i, j + 1],
+                                        rays[i, j, 0] - rays[i, j + 1, 0], rays[i, j, 1] - rays[i, j + 1, 1],
+                                        rays[i, j, 2] - rays[i, j + 1, 2], k_sigma, tan_max_incidence)
+    for i in range(H - 1):
+        for j in range(W):
+            if among_v[i, j]:
+                jump_v[i, j] = _is_jump(rng[i, j], rng[i + 1, j], sigma[i, j], sigma[i + 1, j],
+                                        rays[i, j, 0] - rays[i + 1, j, 0], rays[i, j, 1] - rays[i + 1, j, 1],
+                                        rays[i, j, 2] - rays[i + 1, j, 2], k_sigma, tan_max_incidence)
+    return jump_h, jump_v
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def curvatures(points, sigma, Pu, Pv, Puu, Puv, Pvv, var_u, var_v, cov2):
@@ -843,6 +867,8 @@ def warm_up() -> None:
     reassign_targets(flat, P, X, U, S, lab, steps, ok, np.zeros(1, np.bool_), 1.0, 3.0)
     next_candidates(flat, lab, lab, steps, ok)
     jump_pairs(np.ones((2, 2)), np.ones((2, 2)), np.ones((2, 2, 3)), 3.0, 2.0)
+    jump_pairs_among(np.ones((2, 2)), np.ones((2, 2)), np.ones((2, 2, 3)), 3.0, 2.0, *jump_pairs(
+        np.ones((2, 2)), np.ones((2, 2)), np.ones((2, 2, 3)), 3.0, 2.0))
     one, three = np.ones((1, 1)), np.ones((1, 1, 3))
     checked_returns(three, one, 1e-4)
     w = np.array([1.0, 1.0, 1.0]) / 3

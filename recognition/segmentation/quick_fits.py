@@ -356,15 +356,15 @@ def _is_plane_pair(p: np.ndarray, x: np.ndarray, tol: float) -> bool:
     if not np.all(np.isfinite(p)):
         return False
     A, b, c = quadric_matrices(p)
+    lam, V = _eig_by_magnitude(A)
+    l1 = abs(lam[0])
+    if l1 == 0 or abs(lam[2]) > tol * l1 or lam[0] * lam[1] >= 0:
+        return False  # (decided by A alone: before the points' moments)
     mean = x.mean(axis=0)
     R = float(np.sqrt(np.mean(np.sum((x - mean) ** 2, axis=1)))) or 1.0
     # in centred coordinates: f = y'Ay + (2 A mean + b)'y + f(mean)
     b0 = 2 * A @ mean + b
     c0 = float(mean @ A @ mean + b @ mean + c)
-    lam, V = _eig_by_magnitude(A)
-    l1 = abs(lam[0])
-    if l1 == 0 or abs(lam[2]) > tol * l1 or lam[0] * lam[1] >= 0:
-        return False
     bv = V.T @ b0
     if abs(bv[2]) > tol * l1 * R:
         return False

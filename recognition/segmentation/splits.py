@@ -10,7 +10,7 @@ import numpy as np
 from recognition.fitting import MIN_GRAZING, fit_cylinder
 from scenes.geometry import perpendicular_basis
 
-from .grid import _groups, _rms, _State, _subsample
+from .grid import _bin_medians, _groups, _rms, _State, _subsample
 from .merging import _absorb_fragments
 from .quick_fits import _is_plane_pair, _plane_pair_sides, _quick_fits
 from .types import SegmentationParams
@@ -352,9 +352,7 @@ def _axial_cut(x: np.ndarray, s: np.ndarray, point: np.ndarray, axis: np.ndarray
         full = np.flatnonzero(cnt >= max(20.0, params.axial_partial_fraction * float(np.median(cnt[full]))))
     if full.size < 2 * min_bins:
         return None
-    order = np.lexsort((rho, b))
-    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
-    med = rho[order[start[full] + cnt[full] // 2]]
+    med = _bin_medians(rho, b, nb, full)
     tol = np.maximum(3.0 * 1.25 * np.bincount(b, weights=s, minlength=nb)[full] / cnt[full] ** 1.5,
                      flat_fraction * radius)
 

@@ -328,3 +328,39 @@ def test_next_candidates_equal_the_reference(seed, n_labels):
     got = kernels.next_candidates(flat, cand, moved, steps, ok)
     np.testing.assert_array_equal(got, _next_candidates_reference(flat, cand, moved, steps, ok))
 
+
+@given(SEEDS, st.integers(1, 300), st.integers(1, 12))
+@settings(max_examples=60, deadline=None)
+def test_bin_medians_equal_the_sorted_ranks(seed, n, n_bins):
+    """The median element of each bin by selection == by one sort of all values by bin and value (ties too)."""
+    from recognition.segmentation.grid import _bin_medians
+
+    gen = np.random.default_rng(seed)
+    values = np.round(gen.normal(size=n), 1)  # ties
+    bins = gen.integers(0, n_bins, n)
+    cnt = np.bincount(bins, minlength=n_bins)
+    which = np.flatnonzero(cnt > 0)
+    order = np.lexsort((values, bins))
+    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+    want = values[order[start[which] + cnt[which] // 2]]
+    np.testing.assert_array_equal(_bin_medians(values, bins, n_bins, which), want)
+
+
+@given(SEEDS, st.floats(0.0, 0.3), st.floats(0.0, 0.5), st.floats(1.0, 4.0))
+@settings(max_examples=30, deadline=None)
+def test_jump_pairs_among_earlier_ones_equal_all(seed, holes, step, max_scale):
+    """Tested only among given pairs, the jump flags are those pairs' flags; with a sigma scaled by >= 1 (as
+    the noise self-calibration scales it), among the unscaled sigma's jumps they are all the jumps."""
+    pts, sigma = _wavy_image(seed, 23, 31, holes, step)
+    rng = np.linalg.norm(pts, axis=-1)
+    rays = pts / rng[..., None]
+    among = jump_pairs(rng, sigma, rays, 3.0, 0.3)
+    scaled = sigma * np.random.default_rng(seed).uniform(1.0, max_scale, sigma.shape)
+    scaled[0, 0] = sigma[0, 0]  # a scale of exactly 1
+    got = kernels.jump_pairs_among(rng, scaled, rays, 3.0, 0.3, *among)
+    for g, w, a in zip(got, jump_pairs(rng, scaled, rays, 3.0, 0.3), among, strict=True):
+        np.testing.assert_array_equal(g, w)
+        np.testing.assert_array_equal(w & a, w)
+    some = [a & (np.random.default_rng(seed + 1).random(a.shape) < 0.5) for a in among]
+    for g, w, a in zip(kernels.jump_pairs_among(rng, sigma, rays, 3.0, 0.3, *some), among, some, strict=True):
+        np.testing.assert_array_equal(g, w & a)
