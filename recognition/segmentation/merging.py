@@ -11,6 +11,7 @@ import numpy as np
 
 from recognition.fitting import MIN_GRAZING, ray_residuals
 
+from . import kernels
 from .grid import _adjacency, _border_pairs, _groups, _is_planar_counts, _rms, _State, _subsample, _unique_pairs
 from .quick_fits import (
     _group_grams,
@@ -152,7 +153,9 @@ def _merge(labels: np.ndarray, st: _State, params: SegmentationParams, jump_h, j
     nmax = params.merge_fit_points
     members = dict(groups)
     subs = {k: _subsample(v, nmax) for k, v in members.items()}
-    counts = {k: np.bincount(st.hk[v], minlength=5) for k, v in members.items()}
+    sizes = np.fromiter((v.size for v in members.values()), np.int64, len(members))
+    counts = dict(zip(members, kernels.class_counts(st.hk, np.concatenate(list(members.values())), sizes),
+                      strict=True))  # each patch's pixels per curvature class (5,)
     planar_class = {k: _is_planar_counts(c) for k, c in counts.items()}
     parts = _FitPart.batch(subs, st)
 
