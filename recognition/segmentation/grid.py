@@ -3,7 +3,7 @@ points of the fits (:class:`_State`), pixel groups, neighbour links, adjacency a
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.ndimage as ndi
@@ -51,12 +51,18 @@ class _Grid:
 
 @dataclass(frozen=True)
 class _State:
-    """The flattened arrays of one grid that the fits of growing, merging and splitting read (private)."""
+    """The flattened arrays of one grid that the fits of growing, merging and splitting read (private; the
+    arrays are not changed while it is in use).
+
+    ``fits`` holds the quick fits already made on these arrays (:func:`.quick_fits._quick_fits`): a group of
+    pixels fitted again, by another step or another round, gets the same fit without the work.
+    """
 
     X: np.ndarray  # (H*W, 3) points
     U: np.ndarray  # (H*W, 3) unit rays
     S: np.ndarray  # (H*W,) sigma
     hk: np.ndarray  # (H*W,) class
+    fits: dict = field(default_factory=dict, init=False, compare=False, repr=False)
 
 
 # ------------------------------------------------------------------------------------- pixel groups

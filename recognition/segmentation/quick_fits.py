@@ -207,19 +207,32 @@ def _quick_fits(idx_list: list[np.ndarray], planar: np.ndarray, st: _State):
 
     Groups of fewer than 10 points get planes, as in :func:`_quick_fit`. The compiled
     :func:`.kernels.quick_fits` (one pass over each group's points for its moments, then the same solution as
-    :func:`_quadric_fits`); :func:`_quick_fits_reference` is the batched numpy of the same fits.
+    :func:`_quadric_fits`); :func:`_quick_fits_reference` is the batched numpy of the same fits. A group
+    fitted before on ``st`` (the same pixels in the same order, plane or quadric alike) takes that fit from
+    ``st.fits``; the z arrays are read only.
     """
     G = len(idx_list)
-    cnt = np.fromiter((len(i) for i in idx_list), np.int64, G)
-    starts = np.zeros(G, np.int64)
-    np.cumsum(cnt[:-1], out=starts[1:])
-    ix = np.concatenate(idx_list).astype(np.int64, copy=False) if G else np.zeros(0, np.int64)
-    P, z, singular = kernels.quick_fits(st.X, st.U, st.S, ix, starts, cnt, np.asarray(planar, np.bool_),
-                                        _TAUBIN_MAP, UNDETERMINED_QUADRIC)
-    for k in np.flatnonzero(singular):  # a numerically singular Taubin system: the one-by-one fit's fallback
-        i = idx_list[k]
-        P[k], z[starts[k]:starts[k] + cnt[k]] = _quick_fit(st.X[i], st.U[i], st.S[i], False)
-    return P, np.split(z, starts[1:]) if G else []
+    idx_list = [np.asarray(i).astype(np.int64, copy=False) for i in idx_list]
+    plane = np.asarray(planar, np.bool_)
+    # a group's fit depends on its pixels, their order and whether it gets a plane, not on the other groups:
+    # those fitted before on this state come from its cache (st.fits), the others are fitted in one batch
+    keys = [(bool(plane[g]) or i.size < 10, i.tobytes()) for g, i in enumerate(idx_list)]
+    todo = [g for g in range(G) if keys[g] not in st.fits]
+    if todo:
+        cnt = np.fromiter((idx_list[g].size for g in todo), np.int64, len(todo))
+        starts = np.zeros(len(todo), np.int64)
+        np.cumsum(cnt[:-1], out=starts[1:])
+        ix = np.concatenate([idx_list[g] for g in todo])
+        P, z, singular = kernels.quick_fits(st.X, st.U, st.S, ix, starts, cnt, plane[todo], _TAUBIN_MAP,
+                                            UNDETERMINED_QUADRIC)
+        for k in np.flatnonzero(singular):  # a numerically singular Taubin system: the one-by-one fit's fallback
+            i = idx_list[todo[k]]
+            P[k], z[starts[k]:starts[k] + cnt[k]] = _quick_fit(st.X[i], st.U[i], st.S[i], False)
+        z.flags.writeable = False  # shared by the cache's entries: read only
+        for k, g in enumerate(todo):
+            st.fits[keys[g]] = (P[k], z[starts[k]:starts[k] + cnt[k]])
+    fits = [st.fits[key] for key in keys]
+    return np.array([f[0] for f in fits]).reshape(G, 10), [f[1] for f in fits]
 
 
 def _quick_fits_reference(idx_list: list[np.ndarray], planar: np.ndarray, st: _State):

@@ -364,3 +364,29 @@ def test_jump_pairs_among_earlier_ones_equal_all(seed, holes, step, max_scale):
     some = [a & (np.random.default_rng(seed + 1).random(a.shape) < 0.5) for a in among]
     for g, w, a in zip(kernels.jump_pairs_among(rng, sigma, rays, 3.0, 0.3, *some), among, some, strict=True):
         np.testing.assert_array_equal(g, w & a)
+
+
+@given(SEEDS, st.integers(1, 12))
+@settings(max_examples=30, deadline=None)
+def test_quick_fits_from_the_cache_equal_fresh_ones(seed, n_groups):
+    """A group's quick fit does not depend on the batch it is fitted in: refitted among other groups, in another
+    order, or taken from the state's cache, it is the same, bit for bit (and the cached residuals are read only)."""
+    import pytest
+
+    from recognition.segmentation.quick_fits import _quick_fits
+
+    st_, groups, planar = _surface_groups(seed, n_groups)
+    P, zs = _quick_fits(groups, planar, st_)
+    assert len(st_.fits) == len({(bool(p) or g.size < 10, g.tobytes()) for g, p in zip(groups, planar, strict=True)})
+    fresh = _State(X=st_.X, U=st_.U, S=st_.S, hk=st_.hk)
+    order = np.random.default_rng(seed).permutation(n_groups)
+    Po, zo = _quick_fits([groups[g] for g in order], planar[order], fresh)  # fitted anew, in another batch
+    Pc, zc = _quick_fits([groups[g] for g in order], planar[order], st_)  # from the cache
+    for j, g in enumerate(order):
+        np.testing.assert_array_equal(Po[j], P[g])
+        np.testing.assert_array_equal(Pc[j], P[g])
+        np.testing.assert_array_equal(zo[j], zs[g])
+        np.testing.assert_array_equal(zc[j], zs[g])
+    if zs and zs[0].size:
+        with pytest.raises(ValueError):
+            zs[0][0] = 0.0

@@ -1174,8 +1174,7 @@ def test_a_one_pixel_strip_determines_no_quadric_and_gets_its_plane():
     """A row of pixels lies exactly on the plane through the sensor that holds its rays: every quadric holding
     that plane fits it, and the fit would be whichever null vector the rounding picks (labels that changed with
     the machine). It gets the plane, alone and batched; a patch of two rows gets its quadric."""
-    from types import SimpleNamespace
-
+    from recognition.segmentation.grid import _State
     from recognition.segmentation.quick_fits import _quick_fit, _quick_fits, quadric_undetermined
 
     rng = np.random.default_rng(4)
@@ -1190,7 +1189,7 @@ def test_a_one_pixel_strip_determines_no_quadric_and_gets_its_plane():
     p_one, z_one = _quick_fit(strip, rays, np.full(14, 1e-3), planar=False)
     p_plane, z_plane = _quick_fit(strip, rays, np.full(14, 1e-3), planar=True)
     assert np.allclose(p_one, p_plane) and np.allclose(z_one, z_plane)
-    st = SimpleNamespace(X=strip, U=rays, S=np.full(14, 1e-3))
+    st = _State(X=strip, U=rays, S=np.full(14, 1e-3), hk=np.ones(14, np.int64))
     P, zs = _quick_fits([np.arange(14)], np.array([False]), st)
     assert np.allclose(P[0], p_plane, atol=1e-12) or np.allclose(P[0], -p_plane, atol=1e-12)
     assert np.allclose(zs[0], z_plane)
