@@ -26,9 +26,9 @@ from numba import njit
 from recognition.fitting import MIN_GRAZING
 
 __all__ = [
-    "checked_returns", "class_counts", "curvatures", "grow", "group_order", "jump_pairs", "jump_pairs_among",
-    "masked_fits", "next_candidates", "quick_fits", "ray_z_by_label", "reassign_targets", "savgol_derivatives",
-    "warm_up",
+    "checked_returns", "class_counts", "curvatures", "fragment_flags", "grow", "group_order", "jump_pairs",
+    "jump_pairs_among", "masked_fits", "next_candidates", "quick_fits", "ray_z_by_label", "reassign_targets",
+    "savgol_derivatives", "warm_up",
 ]
 
 
@@ -132,6 +132,48 @@ def class_counts(hk, ix, sizes):
         for _ in range(sizes[g]):
             out[g, hk[ix[t]]] += 1
             t += 1
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def fragment_flags(labels, ranges, jump_h, jump_v, n_labels):
+    """Which patches have a neighbour with a return (not their own) on their surface or nearer: the kernel of
+    :func:`recognition.segmentation.peel._fragment_flags_reference` (its arguments and result).
+
+    A 4-neighbour pair of pixels with returns and different labels flags the labelled one of them when no jump
+    separates them or the other is nearer (NaN ranges are no returns).
+
+    Parameters
+    ----------
+    labels : ndarray of shape (H, W), int
+        Labels < ``n_labels``, -1 unlabelled.
+    ranges : ndarray of shape (H, W), metres
+    jump_h : ndarray of shape (H, W - 1), bool; jump_v : ndarray of shape (H - 1, W), bool
+    n_labels : int
+
+    Returns
+    -------
+    ndarray of shape (n_labels,), bool
+    """
+    H, W = labels.shape
+    out = np.zeros(n_labels, np.bool_)
+    for i in range(H):
+        for j in range(W):
+            a, ra = labels[i, j], ranges[i, j]
+            if not np.isfinite(ra):
+                continue
+            for di, dj in ((0, 1), (1, 0)):
+                ii, jj = i + di, j + dj
+                if ii >= H or jj >= W:
+                    continue
+                b, rb = labels[ii, jj], ranges[ii, jj]
+                if a == b or not np.isfinite(rb):
+                    continue
+                jump = jump_h[i, j] if di == 0 else jump_v[i, j]
+                if a >= 0 and (not jump or rb < ra):
+                    out[a] = True
+                if b >= 0 and (not jump or ra < rb):
+                    out[b] = True
     return out
 
 
@@ -858,6 +900,8 @@ def warm_up() -> None:
     ray_z_by_label(P, lab, X, U, S)
     for dtype in (np.int32, np.int64):  # label images of both widths
         group_order(np.array([0, -1, 0, 0], dtype), 1)
+        fragment_flags(np.array([[0, -1], [0, 0]], dtype), np.ones((2, 2)), np.zeros((2, 1), np.bool_),
+                       np.zeros((1, 2), np.bool_), 1)
     class_counts(lab, lab, np.array([2, 2], np.int64))
     flat = np.array([0, -1, -1, -1], np.int64)
     steps = np.array([-1, 1, -2, 2], np.int64)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import kernels
 from .grid import _border_pairs
 from .types import SegmentationParams
 
@@ -73,12 +74,26 @@ def _drop_fragments(labels: np.ndarray, params: SegmentationParams, ranges: np.n
     small = sizes < params.min_kept_pixels
     if not small.any():
         return labels
-    # a patch is a fragment when a neighbour with a return (not its own) is on its surface (no jump) or nearer
-    fragment = np.zeros(sizes.size, bool)
+    drop = small & _fragment_flags(labels, ranges, jump_h, jump_v, sizes.size)
+    return np.where((labels >= 0) & drop[np.maximum(labels, 0)], -1, labels).astype(np.int32)
+
+
+def _fragment_flags(labels: np.ndarray, ranges: np.ndarray, jump_h: np.ndarray, jump_v: np.ndarray,
+                    n_labels: int) -> np.ndarray:
+    """(n_labels,) bool: whether a patch has a neighbour with a return (not its own) on its surface (no jump)
+    or nearer; ``labels`` (H, W) < ``n_labels``, ``ranges`` (H, W) NaN where no return. The compiled
+    :func:`.kernels.fragment_flags`, whose reference is :func:`_fragment_flags_reference`."""
+    lab = labels if labels.dtype in (np.int32, np.int64) else labels.astype(np.int64)
+    return kernels.fragment_flags(lab, np.asarray(ranges, np.float64), jump_h, jump_v, int(n_labels))
+
+
+def _fragment_flags_reference(labels: np.ndarray, ranges: np.ndarray, jump_h: np.ndarray, jump_v: np.ndarray,
+                              n_labels: int) -> np.ndarray:
+    """:func:`_fragment_flags` in numpy, one direction at a time."""
+    fragment = np.zeros(n_labels, bool)
     for a, b, ra, rb, j in ((labels[:, :-1], labels[:, 1:], ranges[:, :-1], ranges[:, 1:], jump_h),
                             (labels[:-1, :], labels[1:, :], ranges[:-1, :], ranges[1:, :], jump_v)):
         m = (a != b) & np.isfinite(ra) & np.isfinite(rb)
         fragment[a[m & (a >= 0) & (~j | (rb < ra))]] = True
         fragment[b[m & (b >= 0) & (~j | (ra < rb))]] = True
-    drop = small & fragment
-    return np.where((labels >= 0) & drop[np.maximum(labels, 0)], -1, labels).astype(np.int32)
+    return fragment

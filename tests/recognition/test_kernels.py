@@ -390,3 +390,32 @@ def test_quick_fits_from_the_cache_equal_fresh_ones(seed, n_groups):
     if zs and zs[0].size:
         with pytest.raises(ValueError):
             zs[0][0] = 0.0
+
+
+@given(SEEDS, st.integers(1, 12), st.floats(0.0, 0.3), st.floats(0.0, 0.5))
+@settings(max_examples=40, deadline=None)
+def test_fragment_flags_equal_the_reference(seed, n_labels, holes, step):
+    from recognition.segmentation.peel import _fragment_flags, _fragment_flags_reference
+
+    pts, sigma = _wavy_image(seed, 19, 25, holes, step)
+    rng = np.linalg.norm(pts, axis=-1)
+    rays = pts / rng[..., None]
+    jump_h, jump_v = jump_pairs(rng, sigma, rays, 3.0, 0.3)
+    gen = np.random.default_rng(seed)
+    labels = np.full(rng.shape, -1, np.int32)
+    for k in range(3 * n_labels):
+        r, c = gen.integers(0, 19), gen.integers(0, 25)
+        labels[r:r + gen.integers(1, 8), c:c + gen.integers(1, 8)] = k % n_labels
+    for lab in (labels, labels.astype(np.int64)):
+        want = _fragment_flags_reference(lab, rng, jump_h, jump_v, n_labels)
+        np.testing.assert_array_equal(_fragment_flags(lab, rng, jump_h, jump_v, n_labels), want)
+
+
+@given(SEEDS, st.floats(0.0, 0.3), st.integers(1, 3))
+@settings(max_examples=30, deadline=None)
+def test_square_dilations_equal_one_maximum_filter(seed, density, d):
+    """The full-resolution refinement's pixels near an edge: d dilations by the 3 x 3 square (what it did)
+    are one maximum filter of the (2d + 1) square, also at the image's border."""
+    edge = np.random.default_rng(seed).random((17, 23)) < density
+    want = ndi.binary_dilation(edge, structure=np.ones((3, 3), bool), iterations=d)
+    np.testing.assert_array_equal(ndi.maximum_filter(edge, size=2 * d + 1, mode="constant", cval=False), want)
