@@ -26,9 +26,9 @@ from numba import njit
 from recognition.fitting import MIN_GRAZING
 
 __all__ = [
-    "checked_returns", "class_counts", "curvatures", "fragment_flags", "grow", "group_order", "jump_pairs",
-    "jump_pairs_among", "masked_fits", "next_candidates", "quick_fits", "ray_z_by_label", "reassign_targets",
-    "savgol_derivatives", "warm_up",
+    "checked_returns", "class_counts", "completion_targets", "curvatures", "fragment_flags", "grow", "group_order",
+    "jump_pairs", "jump_pairs_among", "masked_fits", "next_candidates", "peel_weak", "quick_fits", "ray_z_by_label",
+    "reassign_targets", "savgol_derivatives", "warm_up",
 ]
 
 
@@ -178,6 +178,68 @@ def fragment_flags(labels, ranges, jump_h, jump_v, n_labels):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _same(labels, i, j, di, dj):
+    """Whether pixel ``(i + di, j + dj)`` is inside the image and has the label of ``(i, j)``."""
+    H, W = labels.shape
+    ii, jj = i + di, j + dj
+    return 0 <= ii < H and 0 <= jj < W and labels[ii, jj] == labels[i, j]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def peel_weak(labels, jump_h, jump_v, n_labels, min_pixels, thin_fraction, stair_fraction):
+    """The labels without their weak pixels: the kernel of
+    :func:`recognition.segmentation.peel._peel_weak_reference` (its rules; ``labels`` (H, W) int < ``n_labels``,
+    -1 unlabelled, ``jump_h`` (H, W - 1) and ``jump_v`` (H - 1, W) bool; returns (H, W) int32)."""
+    H, W = labels.shape
+    sizes = np.zeros(n_labels, np.int64)
+    bordered = np.zeros(n_labels, np.bool_)  # sharing a border without a jump with another patch
+    same = np.zeros((H, W), np.int8)
+    row_end = np.zeros((H, W), np.bool_)
+    for i in range(H):
+        for j in range(W):
+            a = labels[i, j]
+            up, down = _same(labels, i, j, -1, 0), _same(labels, i, j, 1, 0)
+            left, right = _same(labels, i, j, 0, -1), _same(labels, i, j, 0, 1)
+            k = np.int8(up) + np.int8(down) + np.int8(left) + np.int8(right)
+            same[i, j] = k
+            row_end[i, j] = k == 2 and ((up and left and _same(labels, i, j, -1, -1))
+                                        or (up and right and _same(labels, i, j, -1, 1))
+                                        or (down and left and _same(labels, i, j, 1, -1))
+                                        or (down and right and _same(labels, i, j, 1, 1)))
+            if a < 0:
+                continue
+            sizes[a] += 1
+            if j + 1 < W:
+                b = labels[i, j + 1]
+                if b >= 0 and b != a and not jump_h[i, j]:
+                    bordered[a] = bordered[b] = True
+            if i + 1 < H:
+                b = labels[i + 1, j]
+                if b >= 0 and b != a and not jump_v[i, j]:
+                    bordered[a] = bordered[b] = True
+    n_weak = np.zeros(n_labels, np.int64)
+    n_stair = np.zeros(n_labels, np.int64)
+    for i in range(H):
+        for j in range(W):
+            a = labels[i, j]
+            if a >= 0 and (sizes[a] >= min_pixels or bordered[a]) and same[i, j] <= 2:
+                n_weak[a] += 1
+                if row_end[i, j]:
+                    n_stair[a] += 1
+    out = np.empty((H, W), np.int32)
+    for i in range(H):
+        for j in range(W):
+            a = labels[i, j]
+            out[i, j] = a
+            if a >= 0 and (sizes[a] >= min_pixels or bordered[a]) and same[i, j] <= 2:
+                thin = (sizes[a] >= min_pixels and n_weak[a] >= thin_fraction * sizes[a]
+                        and n_stair[a] >= stair_fraction * n_weak[a])
+                if not (thin and row_end[i, j]):
+                    out[i, j] = -1
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def grow(flat, P, X, U, S, steps, link_ok, H, W, max_iter, thr):
     """Grow labelled patches into unlabelled pixels whose residual fits, in place: the kernel of
     :func:`recognition.segmentation.growing._grow_reference`, round for round.
@@ -311,6 +373,52 @@ def reassign_targets(flat, P, X, U, S, cand, steps, link_ok, fragment, margin, t
                 best_l = q
         out[j] = best_l
     return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def completion_targets(flat, P, X, U, S, cand, steps, link_ok):
+    """One round of the border completion's choice: the kernel of
+    :func:`recognition.segmentation.reassignment._completion_targets_reference` (its arguments and results).
+
+    Each candidate pixel's linked neighbours' patches, the one whose surface leaves it the smallest residual
+    (a tie goes to the lower label); -1 and inf without a labelled linked neighbour.
+
+    Parameters
+    ----------
+    flat : ndarray of shape (H*W,), int
+        Labels, -1 unlabelled.
+    P : ndarray of shape (G, 10)
+        Each label's quadric.
+    X, U : ndarray of shape (H*W, 3); S : ndarray of shape (H*W,)
+        Points, unit rays and sigma of the image.
+    cand : ndarray of shape (N,), int
+        Candidate pixels (flat indices).
+    steps : ndarray of shape (4,), int; link_ok : ndarray of shape (4, H*W), bool
+        Flat offset of each link direction and whether each pixel's link that way is allowed.
+
+    Returns
+    -------
+    best_l : ndarray of shape (N,), int64
+    best_z : ndarray of shape (N,), sigma
+    """
+    n = cand.shape[0]
+    last = flat.shape[0] - 1
+    best_l = np.full(n, -1, np.int64)
+    best_z = np.full(n, np.inf)
+    for j in range(n):
+        i = cand[j]
+        bz, bl = np.inf, -1
+        for k in range(4):
+            if not link_ok[k, i]:
+                continue
+            q = flat[min(max(i + steps[k], 0), last)]
+            if q < 0:
+                continue
+            z = _z_one(P, q, X[i, 0], X[i, 1], X[i, 2], U[i, 0], U[i, 1], U[i, 2], S[i])
+            if z < bz or (z == bz and q < bl):
+                bz, bl = z, q
+        best_l[j], best_z[j] = bl, bz
+    return best_l, best_z
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -902,6 +1010,8 @@ def warm_up() -> None:
         group_order(np.array([0, -1, 0, 0], dtype), 1)
         fragment_flags(np.array([[0, -1], [0, 0]], dtype), np.ones((2, 2)), np.zeros((2, 1), np.bool_),
                        np.zeros((1, 2), np.bool_), 1)
+        peel_weak(np.array([[0, -1], [0, 0]], dtype), np.zeros((2, 1), np.bool_), np.zeros((1, 2), np.bool_), 1,
+                  200, 0.1, 0.5)
     class_counts(lab, lab, np.array([2, 2], np.int64))
     flat = np.array([0, -1, -1, -1], np.int64)
     steps = np.array([-1, 1, -2, 2], np.int64)
@@ -910,6 +1020,7 @@ def warm_up() -> None:
     grow(flat, P, X, U, S, steps, ok, 2, 2, 3, 3.0)
     reassign_targets(flat, P, X, U, S, lab, steps, ok, np.zeros(1, np.bool_), 1.0, 3.0)
     next_candidates(flat, lab, lab, steps, ok)
+    completion_targets(flat, P, X, U, S, lab, steps, ok)
     jump_pairs(np.ones((2, 2)), np.ones((2, 2)), np.ones((2, 2, 3)), 3.0, 2.0)
     jump_pairs_among(np.ones((2, 2)), np.ones((2, 2)), np.ones((2, 2, 3)), 3.0, 2.0, *jump_pairs(
         np.ones((2, 2)), np.ones((2, 2)), np.ones((2, 2, 3)), 3.0, 2.0))

@@ -29,6 +29,16 @@ def _peel_weak(labels: np.ndarray, params: SegmentationParams, jump_h: np.ndarra
     or a spur, and stays (the factory scanner's diagonal pipes lost a fifth of their pixels and missed the 0.8
     overlap).
     """
+    if labels.size == 0 or labels.max() < 0:
+        return labels.astype(np.int32)
+    lab = labels if labels.dtype in (np.int32, np.int64) else labels.astype(np.int64)
+    return kernels.peel_weak(lab, jump_h, jump_v, int(labels.max()) + 1, int(params.min_region_pixels),
+                             float(params.thin_peel_fraction), float(params.stair_fraction))
+
+
+def _peel_weak_reference(labels: np.ndarray, params: SegmentationParams, jump_h: np.ndarray,
+                         jump_v: np.ndarray) -> np.ndarray:
+    """:func:`_peel_weak` in numpy (the reference of :func:`.kernels.peel_weak`)."""
     min_pixels = params.min_region_pixels
     pad = np.pad(labels, 1, constant_values=-1)
     H, W = labels.shape

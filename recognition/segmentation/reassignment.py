@@ -122,6 +122,35 @@ def _targets_reference(flat: np.ndarray, P: np.ndarray, st: _State, cand: np.nda
     return best_l
 
 
+def _completion_targets(flat: np.ndarray, P: np.ndarray, st: _State, cand: np.ndarray, steps: np.ndarray,
+                        ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each candidate pixel ``cand`` (N,) of :func:`_complete_borders`: the linked neighbour's patch whose
+    surface ``P`` leaves it the smallest residual and that residual: the compiled
+    :func:`.kernels.completion_targets`, whose reference is :func:`_completion_targets_reference`."""
+    return kernels.completion_targets(flat, P, st.X, st.U, st.S, cand, steps, ok)
+
+
+def _completion_targets_reference(flat: np.ndarray, P: np.ndarray, st: _State, cand: np.ndarray, steps: np.ndarray,
+                                  ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each candidate pixel ``cand`` (N,) of :func:`_complete_borders`: the linked neighbour's patch whose
+    surface ``P`` leaves it the smallest residual (a tie goes to the lower label) and that residual, -1 and inf
+    without one; numpy, one direction at a time (the reference of :func:`.kernels.completion_targets`)."""
+    nb = np.where(ok[:, cand], flat[np.clip(cand[None, :] + steps[:, None], 0, flat.size - 1)], -1)
+    x, u, s = st.X[cand], st.U[cand], st.S[cand]
+    best_z = np.full(cand.size, np.inf)
+    best_l = np.full(cand.size, -1)
+    for k in range(len(steps)):
+        m = nb[k] >= 0
+        if not m.any():
+            continue
+        z = np.full(cand.size, np.inf)
+        z[m] = _pixel_residuals(P, nb[k, m], x[m], u[m], s[m])
+        b = (z < best_z) | ((z == best_z) & (nb[k] >= 0) & (nb[k] < best_l))  # a tie goes to the lower label
+        best_z[b] = z[b]
+        best_l[b] = nb[k, b]
+    return best_l, best_z
+
+
 def _next_candidates_reference(flat: np.ndarray, cand: np.ndarray, moved: np.ndarray, steps: np.ndarray,
                                ok: np.ndarray) -> np.ndarray:
     """The sorted union of the candidates ``cand`` and the labelled pixels linked to a ``moved`` one (the
@@ -168,23 +197,11 @@ def _complete_borders(labels: np.ndarray, st: _State, params: SegmentationParams
         cand = np.flatnonzero((flat < 0) & has_return)
         if cand.size == 0:
             break
-        nb = np.where(ok[:, cand], flat[np.clip(cand[None, :] + steps[:, None], 0, H * W - 1)], -1)
-        x, u, s = st.X[cand], st.U[cand], st.S[cand]
-        best_z = np.full(cand.size, np.inf)
-        best_l = np.full(cand.size, -1)
-        for k in range(len(steps)):
-            m = nb[k] >= 0
-            if not m.any():
-                continue
-            z = np.full(cand.size, np.inf)
-            z[m] = _pixel_residuals(P, nb[k, m], x[m], u[m], s[m])
-            b = (z < best_z) | ((z == best_z) & (nb[k] >= 0) & (nb[k] < best_l))  # a tie goes to the lower label
-            best_z[b] = z[b]
-            best_l[b] = nb[k, b]
+        best_l, best_z = _completion_targets(flat, P, st, cand, steps, ok)
         take = best_z <= params.complete_k
         if not take.any():
             break
-        g = gradient(P[best_l[take]], x[take])
+        g = gradient(P[best_l[take]], st.X[cand[take]])
         cos = np.abs(np.einsum("ij,ij->i", g, normals[cand[take]])) / np.linalg.norm(g, axis=1)
         take[take] = ~(cos < min_cos)  # NaN (no normal, or no gradient) passes
         if not take.any():

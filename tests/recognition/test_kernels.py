@@ -419,3 +419,45 @@ def test_square_dilations_equal_one_maximum_filter(seed, density, d):
     edge = np.random.default_rng(seed).random((17, 23)) < density
     want = ndi.binary_dilation(edge, structure=np.ones((3, 3), bool), iterations=d)
     np.testing.assert_array_equal(ndi.maximum_filter(edge, size=2 * d + 1, mode="constant", cval=False), want)
+
+
+@given(SEEDS, st.integers(1, 12))
+@settings(max_examples=40, deadline=None)
+def test_completion_targets_equal_the_reference(seed, n_labels):
+    from recognition.segmentation.reassignment import _completion_targets, _completion_targets_reference
+
+    st_, flat, P, steps, ok = _patchy_state(seed, 19, 25, n_labels)
+    P[np.random.default_rng(seed).random(n_labels) < 0.2] = P[0]  # equal surfaces: ties
+    cand = np.flatnonzero(flat < 0)
+    got = _completion_targets(flat, P, st_, cand, steps, ok)
+    want = _completion_targets_reference(flat, P, st_, cand, steps, ok)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, w)
+
+
+@given(SEEDS, st.integers(1, 12), st.integers(1, 60), st.floats(0.01, 0.5), st.floats(0.01, 1.0))
+@settings(max_examples=60, deadline=None)
+def test_peel_weak_equals_the_reference(seed, n_labels, min_region, thin, stair):
+    """The compiled peel against the numpy one, on blocky patches (with staircase borders and jumps), with
+    thresholds that make some patches thin and some not."""
+    from dataclasses import replace
+
+    from recognition.segmentation.peel import _peel_weak, _peel_weak_reference
+    from recognition.segmentation.types import SegmentationParams
+
+    pts, sigma = _wavy_image(seed, 19, 25, 0.05, 0.3)
+    rng = np.linalg.norm(pts, axis=-1)
+    jump_h, jump_v = jump_pairs(rng, sigma, pts / rng[..., None], 3.0, 0.3)
+    gen = np.random.default_rng(seed)
+    labels = np.full(rng.shape, -1, np.int32)
+    for k in range(3 * n_labels):
+        r, c = gen.integers(0, 19), gen.integers(0, 25)
+        labels[r:r + gen.integers(1, 8), c:c + gen.integers(1, 8)] = k % n_labels
+    for r in range(19):  # a diagonal strip: a staircase border
+        labels[r, r:r + 3] = n_labels
+    params = replace(SegmentationParams(), min_region_pixels=min_region, thin_peel_fraction=thin,
+                     stair_fraction=stair)
+    for lab in (labels, labels.astype(np.int64), np.full_like(labels, -1)):
+        got = _peel_weak(lab, params, jump_h, jump_v)
+        assert got.dtype == np.int32
+        np.testing.assert_array_equal(got, _peel_weak_reference(lab, params, jump_h, jump_v))
