@@ -162,27 +162,22 @@ def fragment_flags(labels, ranges, jump_h, jump_v, n_labels):
             a, ra = labels[i, j], ranges[i, j]
             if not np.isfinite(ra):
                 continue
-            for di, dj in ((0, 1), (1, 0)):
-                ii, jj = i + di, j + dj
-                if ii >= H or jj >= W:
-                    continue
-                b, rb = labels[ii, jj], ranges[ii, jj]
-                if a == b or not np.isfinite(rb):
-                    continue
-                jump = jump_h[i, j] if di == 0 else jump_v[i, j]
-                if a >= 0 and (not jump or rb < ra):
-                    out[a] = True
-                if b >= 0 and (not jump or ra < rb):
-                    out[b] = True
+            if j + 1 < W:
+                _flag_pair(out, a, labels[i, j + 1], ra, ranges[i, j + 1], jump_h[i, j])
+            if i + 1 < H:
+                _flag_pair(out, a, labels[i + 1, j], ra, ranges[i + 1, j], jump_v[i, j])
     return out
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _same(labels, i, j, di, dj):
-    """Whether pixel ``(i + di, j + dj)`` is inside the image and has the label of ``(i, j)``."""
-    H, W = labels.shape
-    ii, jj = i + di, j + dj
-    return 0 <= ii < H and 0 <= jj < W and labels[ii, jj] == labels[i, j]
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _flag_pair(out, a, b, ra, rb, jump):
+    """:func:`fragment_flags`' test of one pair of neighbours (labels ``a``, ``b``, ranges ``ra`` finite, ``rb``)."""
+    if a == b or not np.isfinite(rb):
+        return
+    if a >= 0 and (not jump or rb < ra):
+        out[a] = True
+    if b >= 0 and (not jump or ra < rb):
+        out[b] = True
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -193,30 +188,35 @@ def peel_weak(labels, jump_h, jump_v, n_labels, min_pixels, thin_fraction, stair
     H, W = labels.shape
     sizes = np.zeros(n_labels, np.int64)
     bordered = np.zeros(n_labels, np.bool_)  # sharing a border without a jump with another patch
-    same = np.zeros((H, W), np.int8)
-    row_end = np.zeros((H, W), np.bool_)
+    same = np.zeros((H, W), np.int8)  # 4-neighbours in the pixel's own patch
+    row_end = np.zeros((H, W), np.bool_)  # two of them, closing a 2 x 2 block of it
     for i in range(H):
         for j in range(W):
             a = labels[i, j]
-            up, down = _same(labels, i, j, -1, 0), _same(labels, i, j, 1, 0)
-            left, right = _same(labels, i, j, 0, -1), _same(labels, i, j, 0, 1)
-            k = np.int8(up) + np.int8(down) + np.int8(left) + np.int8(right)
-            same[i, j] = k
-            row_end[i, j] = k == 2 and ((up and left and _same(labels, i, j, -1, -1))
-                                        or (up and right and _same(labels, i, j, -1, 1))
-                                        or (down and left and _same(labels, i, j, 1, -1))
-                                        or (down and right and _same(labels, i, j, 1, 1)))
             if a < 0:
                 continue
+            up = i > 0 and labels[i - 1, j] == a
+            down = i < H - 1 and labels[i + 1, j] == a
+            left = j > 0 and labels[i, j - 1] == a
+            right = j < W - 1 and labels[i, j + 1] == a
+            k = int(up) + int(down) + int(left) + int(right)
+            same[i, j] = k
+            if k == 2:
+                row_end[i, j] = ((up and left and labels[i - 1, j - 1] == a)
+                                 or (up and right and labels[i - 1, j + 1] == a)
+                                 or (down and left and labels[i + 1, j - 1] == a)
+                                 or (down and right and labels[i + 1, j + 1] == a))
             sizes[a] += 1
             if j + 1 < W:
                 b = labels[i, j + 1]
                 if b >= 0 and b != a and not jump_h[i, j]:
-                    bordered[a] = bordered[b] = True
+                    bordered[a] = True
+                    bordered[b] = True
             if i + 1 < H:
                 b = labels[i + 1, j]
                 if b >= 0 and b != a and not jump_v[i, j]:
-                    bordered[a] = bordered[b] = True
+                    bordered[a] = True
+                    bordered[b] = True
     n_weak = np.zeros(n_labels, np.int64)
     n_stair = np.zeros(n_labels, np.int64)
     for i in range(H):
@@ -765,11 +765,12 @@ def quick_fits(X, U, S, ix, starts, counts, planar, taubin_map, undetermined_bel
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _spd_inverse6(M, out):
+def _spd_inverse6(M, out, L, Li):
     """Inverse of a symmetric positive-definite 6 x 6 matrix by Cholesky, the operations of
-    :func:`recognition.segmentation.derivatives.spd_inverse` (sums in index order) for one matrix."""
+    :func:`recognition.segmentation.derivatives.spd_inverse` (sums in index order) for one matrix; ``L`` and
+    ``Li`` (6, 6) are work space (the factor and its inverse)."""
     k = 6
-    L = np.zeros((k, k))
+    L[:, :] = 0.0
     for j in range(k):
         s = 0.0
         for t in range(j):
@@ -780,7 +781,7 @@ def _spd_inverse6(M, out):
             for t in range(j):
                 s = s + L[i, t] * L[j, t] if t else L[i, t] * L[j, t]
             L[i, j] = (M[i, j] - s) / L[j, j]
-    Li = np.zeros((k, k))
+    Li[:, :] = 0.0
     for i in range(k):
         Li[i, i] = 1.0 / L[i, i]
         for j in range(i):
@@ -835,6 +836,7 @@ def masked_fits(points, sigma, rng, rows, cols, window, jump_k, jump_tan, alpha,
     M = np.empty((6, 6))
     Mu = np.empty(21)
     inv = np.empty((6, 6))
+    work_l, work_li = np.empty((6, 6)), np.empty((6, 6))
     rhs = np.empty((6, 3))
     mf = np.zeros(nw, np.bool_)
     row_hit = np.zeros(window, np.bool_)
@@ -886,7 +888,7 @@ def masked_fits(points, sigma, rng, rows, cols, window, jump_k, jump_tan, alpha,
             tr += M[a, a]
         for a in range(6):
             M[a, a] += 1e-12 * tr
-        _spd_inverse6(M, inv)
+        _spd_inverse6(M, inv, work_l, work_li)
         c00 = inv[3, 3] * J[0] * J[0]
         c22 = inv[5, 5] * J[2] * J[2]
         if not (c00 <= max_var_uu and c22 <= max_var_uu):
