@@ -300,7 +300,7 @@ def quadratic_derivatives(
     SurfaceDerivatives
     """
     H, W = points.shape[:2]
-    valid = np.isfinite(points).all(axis=-1) & np.isfinite(sigma)
+    valid, points0 = _window_inputs(points, sigma)
     rng = norm3(points)
     with np.errstate(invalid="ignore", divide="ignore"):
         rays = points / rng[..., None]
@@ -314,10 +314,8 @@ def quadratic_derivatives(
         jump_h, jump_v = jump_pairs(rng, sigma, rays, jump_k, jump_tan) if jumps is None else jumps
         full = clean_windows(valid, jump_h, jump_v, window)
     if full.any():
-        Pu, Pv, Puu, Puv, Pvv = _full_window_derivatives(np.where(valid[..., None], points, 0.0), window)
-        notfull = ~full
-        for a in (Pu, Pv, Puu, Puv, Pvv):
-            a[notfull] = np.nan
+        Pu, Pv, Puu, Puv, Pvv = _full_window_derivatives(points0, window)
+        kernels.blank_outside(full, (Pu, Pv, Puu, Puv, Pvv))
     else:
         Pu, Pv, Puu, Puv, Pvv = (np.full((H, W, 3), np.nan) for _ in range(5))
     var_u = np.where(full, float(k["var_d1"]), np.nan)
@@ -333,6 +331,19 @@ def quadratic_derivatives(
             (Pu, Pv, Puu, Puv, Pvv, var_u, var_v, cov2),
         )
     return SurfaceDerivatives(Pu, Pv, Puu, Puv, Pvv, var_u, var_v, cov2, full)
+
+
+def _window_inputs(points: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(valid (H, W), points with 0 where not valid (H, W, 3))`` of a point image (H, W, 3) and its sigma
+    (H, W): valid where every coordinate and sigma are finite. The compiled :func:`.kernels.window_inputs`;
+    :func:`_window_inputs_reference` is the same in numpy."""
+    return kernels.window_inputs(np.asarray(points, np.float64), np.asarray(sigma, np.float64))
+
+
+def _window_inputs_reference(points: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_window_inputs` in numpy (its reference)."""
+    valid = np.isfinite(points).all(axis=-1) & np.isfinite(sigma)
+    return valid, np.where(valid[..., None], points, 0.0)
 
 
 def spd_inverse(M: np.ndarray) -> np.ndarray:

@@ -26,9 +26,10 @@ from numba import njit
 from recognition.fitting import MIN_GRAZING
 
 __all__ = [
-    "checked_returns", "class_counts", "completion_targets", "curvatures", "fragment_flags", "grow", "group_order",
-    "jump_pairs", "jump_pairs_among", "masked_fits", "next_candidates", "peel_weak", "quick_fits", "ray_z_by_label",
-    "reassign_targets", "savgol_derivatives", "warm_up",
+    "blank_outside", "checked_returns", "class_counts", "completion_targets", "curvatures", "enclosed_targets",
+    "fragment_flags", "grow", "group_order", "jump_pairs", "jump_pairs_among", "masked_fits", "next_candidates",
+    "peel_weak", "quick_fits", "ray_z_by_label", "reassign_targets", "savgol_derivatives", "warm_up",
+    "window_inputs",
 ]
 
 
@@ -237,6 +238,67 @@ def peel_weak(labels, jump_h, jump_v, n_labels, min_pixels, thin_fraction, stair
                 if not (thin and row_end[i, j]):
                     out[i, j] = -1
     return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def enclosed_targets(labels, valid, jump_h, jump_v, n_labels, min_pixels):
+    """One round of the enclosed-fragment merge: the label each patch joins (``remap`` (n_labels,), itself when
+    it stays), the kernel of :func:`recognition.segmentation.merging._enclosed_targets_reference`.
+
+    A patch's neighbours across its 4-borders are other patches, -2 (the image border or a pixel without a
+    return) or transparent (an unlabelled return, or across a jump: not counted). A patch of fewer than
+    ``min_pixels`` pixels whose only neighbour is one larger patch joins it, unless that one joins another
+    itself (patches taken by increasing label).
+
+    Parameters
+    ----------
+    labels : ndarray of shape (H, W), int
+        Labels < ``n_labels``, -1 unlabelled.
+    valid : ndarray of shape (H, W), bool
+        Returns.
+    jump_h : ndarray of shape (H, W - 1), bool; jump_v : ndarray of shape (H - 1, W), bool
+    n_labels, min_pixels : int
+    """
+    H, W = labels.shape
+    sizes = np.zeros(n_labels, np.int64)
+    first = np.full(n_labels, -4, np.int64)  # a patch's neighbour (-4: none seen)
+    several = np.zeros(n_labels, np.bool_)  # more than one distinct neighbour
+    for i in range(H):
+        for j in range(W):
+            a = labels[i, j]
+            if a >= 0:
+                sizes[a] += 1
+            if a < 0 or not valid[i, j]:
+                continue
+            for k in range(4):
+                if k == 0:
+                    ii, jj, jump = i, j - 1, j > 0 and jump_h[i, j - 1]
+                elif k == 1:
+                    ii, jj, jump = i, j + 1, j < W - 1 and jump_h[i, j]
+                elif k == 2:
+                    ii, jj, jump = i - 1, j, i > 0 and jump_v[i - 1, j]
+                else:
+                    ii, jj, jump = i + 1, j, i < H - 1 and jump_v[i, j]
+                if jump:
+                    continue
+                if ii < 0 or ii >= H or jj < 0 or jj >= W or not valid[ii, jj]:
+                    b = -2
+                else:
+                    b = labels[ii, jj]
+                    if b == -1:
+                        continue  # an unlabelled return: transparent
+                if b == a:
+                    continue
+                if first[a] == -4:
+                    first[a] = b
+                elif first[a] != b:
+                    several[a] = True
+    remap = np.arange(n_labels)
+    for p in range(n_labels):
+        q = first[p]
+        if q >= 0 and not several[p] and sizes[p] < min_pixels and sizes[q] > sizes[p] and remap[q] == q:
+            remap[p] = q
+    return remap
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -530,6 +592,36 @@ def jump_pairs_among(rng, sigma, rays, k_sigma, tan_max_incidence, among_h, amon
                                         rays[i, j, 0] - rays[i + 1, j, 0], rays[i, j, 1] - rays[i + 1, j, 1],
                                         rays[i, j, 2] - rays[i + 1, j, 2], k_sigma, tan_max_incidence)
     return jump_h, jump_v
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def window_inputs(points, sigma):
+    """The pixels with a return and the point image with 0 elsewhere, for the derivatives: the kernel of
+    :func:`recognition.segmentation.derivatives._window_inputs_reference` (``points`` (H, W, 3), ``sigma``
+    (H, W); returns ``valid`` (H, W) bool, where every coordinate and sigma are finite, and the points
+    (H, W, 3))."""
+    H, W = sigma.shape
+    valid = np.zeros((H, W), np.bool_)
+    pts0 = np.zeros((H, W, 3))
+    for i in range(H):
+        for j in range(W):
+            x0, x1, x2 = points[i, j, 0], points[i, j, 1], points[i, j, 2]
+            if np.isfinite(x0) and np.isfinite(x1) and np.isfinite(x2) and np.isfinite(sigma[i, j]):
+                valid[i, j] = True
+                pts0[i, j, 0], pts0[i, j, 1], pts0[i, j, 2] = x0, x1, x2
+    return valid, pts0
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def blank_outside(full, images):
+    """NaN in each (H, W, 3) image of ``images`` where ``full`` (H, W) is False, in place: ``a[~full] = np.nan``
+    for each ``a`` (its numpy reference)."""
+    H, W = full.shape
+    for a in images:
+        for i in range(H):
+            for j in range(W):
+                if not full[i, j]:
+                    a[i, j, 0] = a[i, j, 1] = a[i, j, 2] = np.nan
+
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def curvatures(points, sigma, Pu, Pv, Puu, Puv, Pvv, var_u, var_v, cov2):
@@ -1012,6 +1104,9 @@ def warm_up() -> None:
         group_order(np.array([0, -1, 0, 0], dtype), 1)
         fragment_flags(np.array([[0, -1], [0, 0]], dtype), np.ones((2, 2)), np.zeros((2, 1), np.bool_),
                        np.zeros((1, 2), np.bool_), 1)
+        for valid in (np.ones((2, 2), np.bool_), np.ones((4, 4), np.bool_)[::2, ::2]):  # a coarse grid's: strided
+            enclosed_targets(np.array([[0, -1], [0, 0]], dtype), valid, np.zeros((2, 1), np.bool_),
+                             np.zeros((1, 2), np.bool_), 1, 10)
         peel_weak(np.array([[0, -1], [0, 0]], dtype), np.zeros((2, 1), np.bool_), np.zeros((1, 2), np.bool_), 1,
                   200, 0.1, 0.5)
     class_counts(lab, lab, np.array([2, 2], np.int64))
@@ -1028,6 +1123,9 @@ def warm_up() -> None:
         np.ones((2, 2)), np.ones((2, 2)), np.ones((2, 2, 3)), 3.0, 2.0))
     one, three = np.ones((1, 1)), np.ones((1, 1, 3))
     checked_returns(three, one, 1e-4)
+    window_inputs(three, one)
+    window_inputs(np.ones((2, 2, 3))[::2, ::2], np.ones((2, 2))[::2, ::2])  # a coarse grid's strided views
+    blank_outside(np.zeros((1, 1), np.bool_), (three.copy(),) * 5)
     w = np.array([1.0, 1.0, 1.0]) / 3
     savgol_derivatives(np.ones((3, 3, 3)), w, np.array([-0.5, 0.0, 0.5]), w, np.array([1, -1, 1]))
     curvatures(three, one, three, three, three, three, three, one, one, np.ones((1, 1, 6)))

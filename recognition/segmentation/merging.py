@@ -274,7 +274,30 @@ def _merge_enclosed(labels: np.ndarray, params: SegmentationParams, valid: np.nd
     the far side of a jump; the image border and pixels without a return count as other neighbours. Small
     enclosed patches (fewer than ``min_patch_pixels``) join q.
     """
-    min_pixels = params.min_patch_pixels
+    for _ in range(10):
+        if labels.size == 0 or labels.max() < 0:
+            return labels
+        remap = _enclosed_targets(labels, valid, jump_h, jump_v, int(labels.max()) + 1, params.min_patch_pixels)
+        if np.array_equal(remap, np.arange(remap.size)):
+            return labels
+        m = labels >= 0
+        labels = labels.copy()
+        labels[m] = remap[labels[m]]
+    return labels
+
+
+def _enclosed_targets(labels: np.ndarray, valid: np.ndarray, jump_h: np.ndarray, jump_v: np.ndarray,
+                      n_labels: int, min_pixels: int) -> np.ndarray:
+    """One round of :func:`_merge_enclosed`: the label each patch joins, itself when it stays (n_labels,); the
+    compiled :func:`.kernels.enclosed_targets`, whose reference is :func:`_enclosed_targets_reference`.
+    ``labels`` (H, W) < ``n_labels``, ``valid`` (H, W) the returns."""
+    lab = labels if labels.dtype in (np.int32, np.int64) else labels.astype(np.int64)
+    return kernels.enclosed_targets(lab, valid, jump_h, jump_v, int(n_labels), int(min_pixels))
+
+
+def _enclosed_targets_reference(labels: np.ndarray, valid: np.ndarray, jump_h: np.ndarray, jump_v: np.ndarray,
+                                n_labels: int, min_pixels: int) -> np.ndarray:
+    """:func:`_enclosed_targets` in numpy, by the unique (patch, neighbour) pairs of the four directions."""
     Hh, Ww = labels.shape
     # per direction: neighbour label, with -3 = transparent (unlabelled return or across a jump)
     across = []
@@ -289,35 +312,27 @@ def _merge_enclosed(labels: np.ndarray, params: SegmentationParams, valid: np.nd
         else:
             j[:-1, :] = jump_v
         across.append(j)
-    for _ in range(10):
-        pad = np.full((Hh + 2, Ww + 2), -2, dtype=np.int64)  # -2: border or no return
-        lab = np.where(valid, labels, -2).astype(np.int64)
-        lab[lab == -1] = -3
-        pad[1:-1, 1:-1] = lab
-        centre = pad[1:-1, 1:-1]
-        pairs = []
-        for nb, j in zip((pad[1:-1, :-2], pad[1:-1, 2:], pad[:-2, 1:-1], pad[2:, 1:-1]), across, strict=True):
-            m = (centre >= 0) & (nb != centre) & (nb != -3) & ~j
-            pairs.append(np.stack([centre[m], nb[m]], axis=1))
-        pairs = np.concatenate(pairs)
-        if pairs.size == 0:
-            return labels
-        pairs = _unique_pairs(pairs)
-        sizes = np.bincount(labels[labels >= 0])
-        owner, first, n_other = np.unique(pairs[:, 0], return_index=True, return_counts=True)
-        changed = False
-        remap = np.arange(sizes.size)
-        for p, f, k in zip(owner, first, n_other, strict=True):
-            q = int(pairs[f, 1])
-            if k == 1 and q >= 0 and sizes[p] < min_pixels and sizes[q] > sizes[p] and remap[q] == q:
-                remap[p] = q
-                changed = True
-        if not changed:
-            return labels
-        m = labels >= 0
-        labels = labels.copy()
-        labels[m] = remap[labels[m]]
-    return labels
+    remap = np.arange(n_labels)
+    pad = np.full((Hh + 2, Ww + 2), -2, dtype=np.int64)  # -2: border or no return
+    lab = np.where(valid, labels, -2).astype(np.int64)
+    lab[lab == -1] = -3
+    pad[1:-1, 1:-1] = lab
+    centre = pad[1:-1, 1:-1]
+    pairs = []
+    for nb, j in zip((pad[1:-1, :-2], pad[1:-1, 2:], pad[:-2, 1:-1], pad[2:, 1:-1]), across, strict=True):
+        m = (centre >= 0) & (nb != centre) & (nb != -3) & ~j
+        pairs.append(np.stack([centre[m], nb[m]], axis=1))
+    pairs = np.concatenate(pairs)
+    if pairs.size == 0:
+        return remap
+    pairs = _unique_pairs(pairs)
+    sizes = np.bincount(labels[labels >= 0], minlength=n_labels)
+    owner, first, n_other = np.unique(pairs[:, 0], return_index=True, return_counts=True)
+    for p, f, k in zip(owner, first, n_other, strict=True):
+        q = int(pairs[f, 1])
+        if k == 1 and q >= 0 and sizes[p] < min_pixels and sizes[q] > sizes[p] and remap[q] == q:
+            remap[p] = q
+    return remap
 
 
 def _attach_isolated(labels: np.ndarray, st: _State, params: SegmentationParams, jump_h: np.ndarray,

@@ -461,3 +461,52 @@ def test_peel_weak_equals_the_reference(seed, n_labels, min_region, thin, stair)
         got = _peel_weak(lab, params, jump_h, jump_v)
         assert got.dtype == np.int32
         np.testing.assert_array_equal(got, _peel_weak_reference(lab, params, jump_h, jump_v))
+
+
+@given(SEEDS, st.floats(0.0, 0.5), st.booleans())
+@settings(max_examples=30, deadline=None)
+def test_window_inputs_and_blanking_equal_numpy(seed, holes, strided):
+    """The derivatives' valid pixels and zero-filled points, and the blanking of the full-window derivatives
+    outside their windows, against the numpy they replace (on a strided view too: the coarse grid's)."""
+    from recognition.segmentation.derivatives import _window_inputs, _window_inputs_reference
+
+    pts, sigma = _wavy_image(seed, 18, 22, holes, 0.3)
+    gen = np.random.default_rng(seed)
+    pts[gen.random((18, 22)) < 0.1, gen.integers(0, 3)] = np.inf  # one coordinate not finite
+    sigma[gen.random((18, 22)) < 0.1] = np.nan  # a point without a sigma
+    if strided:
+        pts, sigma = pts[::2, ::2], sigma[::2, ::2]
+    got, want = _window_inputs(pts, sigma), _window_inputs_reference(pts, sigma)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, w)
+    full = gen.random(sigma.shape) < 0.5
+    images = tuple(gen.normal(size=sigma.shape + (3,)) for _ in range(5))
+    blanked = tuple(a.copy() for a in images)
+    kernels.blank_outside(full, blanked)
+    for a, b in zip(images, blanked, strict=True):
+        a[~full] = np.nan
+        np.testing.assert_array_equal(a, b)
+
+
+@given(SEEDS, st.integers(1, 12), st.integers(1, 40), st.floats(0.0, 0.05), st.floats(0.0, 0.2))
+@settings(max_examples=60, deadline=None)
+def test_enclosed_targets_equal_the_reference(seed, n_small, min_pixels, holes, unlabelled):
+    """One round of the enclosed-fragment merge, compiled and in numpy: small patches on a host (some beside
+    another, unlabelled returns, holes, jumps or the border), on a strided valid mask (the coarse grid's)."""
+    from recognition.segmentation.merging import _enclosed_targets, _enclosed_targets_reference
+
+    pts, sigma = _wavy_image(seed, 38, 50, holes, 0.3)
+    rng = np.linalg.norm(pts, axis=-1)[::2, ::2]
+    valid = np.isfinite(sigma)[::2, ::2]
+    jump_h, jump_v = jump_pairs(rng, sigma[::2, ::2], (pts / np.linalg.norm(pts, axis=-1)[..., None])[::2, ::2],
+                                3.0, 0.3)
+    gen = np.random.default_rng(seed)
+    labels = np.zeros(rng.shape, np.int32)  # the host
+    labels[:, gen.integers(10, 25):] = 1  # and a second one
+    for k in range(2, n_small + 2):
+        r, c = gen.integers(0, 19), gen.integers(0, 25)
+        labels[r:r + gen.integers(1, 5), c:c + gen.integers(1, 5)] = k
+    labels[gen.random(labels.shape) < unlabelled] = -1
+    n = int(labels.max()) + 1
+    got = _enclosed_targets(labels, valid, jump_h, jump_v, n, min_pixels)
+    np.testing.assert_array_equal(got, _enclosed_targets_reference(labels, valid, jump_h, jump_v, n, min_pixels))
