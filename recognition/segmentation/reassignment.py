@@ -186,7 +186,7 @@ def _complete_borders(labels: np.ndarray, st: _State, params: SegmentationParams
     groups = {k: v for k, v in _groups(labels).items() if v.size >= params.min_region_pixels}
     if not groups:
         return labels
-    H, W = labels.shape
+    W = labels.shape[1]
     out = labels.copy()
     flat = out.ravel()
     P = _fit_groups(groups, st, params, int(flat.max()) + 1, trim=2.0 * params.grow_k)
