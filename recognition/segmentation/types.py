@@ -310,7 +310,10 @@ class SegmentationParams:
         "piece of its elbow it bordered (torus R = 7.2 r; the elbow's own pieces fit R = 3.1 r), at 4 the Kinect-like "
         "group lost 0.008 and the mock-up 0.003; standard elbows bend at 2-3 tube radii (ASME B16.9 short and long "
         "radius)")
-    torus_join_min_pixels: int = tuned(100, unit="px", chosen="not tuned: min_kept_pixels' value")
+    torus_join_min_pixels: int = tuned(
+        200, unit="px", chosen="calibration (issue 35), with torus_join_k: 100 and 200 gave the same labels' scores, "
+        "400 cost the mock-up 0.003; 200 is the smallest scored region (the fits of smaller pieces tell a pipe from "
+        "its elbow less well)")
     torus_join_min_border: int = tuned(20, unit="px", chosen="not tuned: set with the elbow joins")
     torus_join_fit_points: int = tuned(150, unit="points", chosen="not tuned: a speed bound, set with the elbow joins")
     reassign_refit_pixels: int = tuned(
