@@ -66,6 +66,9 @@ What the simulated suites (mixed pixels, outliers, grazing dropouts, incidence-d
    surface fits it clearly better, a few rounds with refits (tiles straddling a pipe and its reducer give
    up the pixels of the other surface). Default suite: correct detection 0.705 -> 0.724, ``select``
    accuracy 0.895 -> 0.913, for about 0.05 s per VGA frame.
+   Then the **elbow joins** (:func:`._join_elbow_pieces`, :mod:`.elbows`): adjacent curved patches that one ring
+   torus fits, and no cylinder, become one (an elbow's inner and outer sides differ in H-K class and no quadric
+   joins them: close Kinect-like elbows were left in two to four pieces).
 10. **Hoover-literal hygiene**: fragments under ``min_region_pixels`` join a bordering patch whose surface
    fits them; pixels with at most two 4-neighbours in their own patch are left unlabelled (mixed pixels
    and one-pixel slivers of other surfaces at corners: the metric counts a patch that wholly covers a
@@ -84,8 +87,8 @@ The segmenter reads only the point image and the per-pixel sigma; never any grou
 Layout: one module per step, run in this order by :func:`segment` (:mod:`.pipeline`, whose step list says
 which steps run for which image size): :mod:`.edges` (returns, jump pairs, the noise self-calibration; 4, 6),
 :mod:`.curvature` with :mod:`.derivatives` (1-4), :mod:`.seeds` and :mod:`.growing` (5, 8), :mod:`.merging` (5),
-then on decimated grids only :mod:`.refinement` (7), :mod:`.merging` again, :mod:`.splits` (8) and
-:mod:`.reassignment` (9); finally :mod:`.peel` (10), the border completion of :mod:`.reassignment` (11) and
+then on decimated grids only :mod:`.refinement` (7), :mod:`.merging` again, :mod:`.splits` (8), :mod:`.reassignment`
+(9) and :mod:`.elbows` (9b); finally :mod:`.peel` (10), the border completion of :mod:`.reassignment` (11) and
 :mod:`.final_fits`. :mod:`.grid` and :mod:`.quick_fits`
 hold what the steps share (pixel groups, adjacency; the batched plane and quadric fits that test growth, merges
 and splits), :mod:`.types` the parameters and results, :mod:`.kernels` the compiled (numba) inner loops that

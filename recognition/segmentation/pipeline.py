@@ -12,6 +12,7 @@ from recognition.tuning import AUTO
 
 from .curvature import _curvature_step, classify_hk, curvature_images
 from .edges import _edge_image, _image_grid
+from .elbows import _join_elbow_pieces
 from .final_fits import _finalise
 from .grid import _Grid, _neighbour_links, _upsampler
 from .growing import _grow_patches
@@ -40,7 +41,7 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
     steps : dict, optional
         Receives the process time (s) of each step, added to what it holds under the step's name (``edges``,
         ``curvature``, ``seeds``, ``growing``, ``merging`` on the segmentation grid, then ``full resolution``,
-        ``merging at full resolution``, ``splits``, ``reassignment``, ``peel``, ``border completion``,
+        ``merging at full resolution``, ``splits``, ``reassignment``, ``elbow joins``, ``peel``, ``border completion``,
         ``final fits``): where a frame's time goes, for ``python -m harness.bench.segmentation --steps``.
 
     Returns
@@ -87,7 +88,7 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
         cur = CurvatureImages(*(up(a) for a in (cur.H, cur.K, cur.sigma_H, cur.sigma_K, cur.normals,
                                                  cur.sigma_normal)))
         st = full.state(hk)
-    # steps 7-9 run on coarse images only: 7 brings the coarse labels back to full resolution, and the merge at
+    # steps 7-9b run on coarse images only: 7 brings the coarse labels back to full resolution, and the merge at
     # full resolution, the splits (8) and the reassignment (9) were built and tuned on what the coarse grid
     # leaves (its blocks and tiles) on VGA-class frames. An image under 400 rows is segmented at full resolution
     # without them (on the real box scans, 245 x 276, the reassignment turned two warped faces into CONE:
@@ -103,6 +104,8 @@ def segment(points: np.ndarray, sigma: np.ndarray, params: SegmentationParams | 
         if params.reassign_rounds:
             labels = _reassign(labels, st, params, links, full.jump_h, full.jump_v)  # 9
         lap("reassignment")
+        labels = _join_elbow_pieces(labels, st, params, full.jump_h, full.jump_v)  # 9b
+        lap("elbow joins")
     edges = _edge_image(shape, full.jump_h, full.jump_v)
     edges[crease] |= np.uint8(EdgeType.CREASE)
     labels = _peel_weak(labels, params, full.jump_h, full.jump_v)  # 10

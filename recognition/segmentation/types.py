@@ -186,6 +186,13 @@ class SegmentationParams:
         The cut of two pipes merged with their elbow (:func:`_dominant_cylinder`): the fraction of normals (and
         of section points) kept nearest the dominant pipe, over this many trimming rounds; the pipe takes the
         points within ``elbow_cut_k`` sigma of its fitted cylinder.
+    torus_join_k, torus_join_cylinder_ratio, torus_join_max_bend : float (sigma) or None, float, float
+        Elbow joins (:func:`._join_elbow_pieces`, step 9b): two adjacent patches join when a ring torus fits their
+        union within ``torus_join_k`` sigma (None: off), bending no wider than ``torus_join_max_bend`` tube radii,
+        and a cylinder fits it ``torus_join_cylinder_ratio`` times worse.
+    torus_join_min_pixels, torus_join_min_border, torus_join_fit_points : int
+        ... of patches of at least ``torus_join_min_pixels`` pixels sharing ``torus_join_min_border`` border pixels;
+        the fits use a regular sample of ``torus_join_fit_points`` of the union's pixels.
     reassign_refit_pixels : int
         Patches of more pixels are not refitted between rounds of :func:`_reassign` (they hardly move).
     complete_k, complete_rounds : float (sigma) or None, int
@@ -292,6 +299,23 @@ class SegmentationParams:
     elbow_cut_keep: float = tuned(0.6, unit="fraction", chosen="not tuned: set with the elbow cut in 336d4d7")
     elbow_cut_rounds: int = tuned(4, unit="count", chosen="not tuned: set with the elbow cut in 336d4d7")
     elbow_cut_k: float = tuned(3.0, unit="sigma", chosen="not tuned: set with the elbow cut in 336d4d7")
+    torus_join_k: float | None = tuned(
+        1.2, unit="sigma", chosen="calibration (issue 35), the segmenter's labels on its 96 frames: correct detection "
+        "0.769 -> 0.769 (factory scanner), 0.723 -> 0.747 (Kinect-like), 0.880 -> 0.892 (mock-up); 1.0 gave the same, "
+        "1.5 0.772 / 0.747 / 0.889")
+    torus_join_cylinder_ratio: float = tuned(
+        1.5, unit="ratio", chosen="calibration (issue 35), with torus_join_k: 1.2 gave the same labels' scores")
+    torus_join_max_bend: float = tuned(
+        5.0, unit="tube radii", chosen="calibration (issue 35), with torus_join_k: at 8 a Kinect-like pipe joined the "
+        "piece of its elbow it bordered (torus R = 7.2 r; the elbow's own pieces fit R = 3.1 r), at 4 the Kinect-like "
+        "group lost 0.008 and the mock-up 0.003; standard elbows bend at 2-3 tube radii (ASME B16.9 short and long "
+        "radius)")
+    torus_join_min_pixels: int = tuned(
+        200, unit="px", chosen="calibration (issue 35), with torus_join_k: 100 and 200 gave the same labels' scores, "
+        "400 cost the mock-up 0.003; 200 is the smallest scored region (the fits of smaller pieces tell a pipe from "
+        "its elbow less well)")
+    torus_join_min_border: int = tuned(20, unit="px", chosen="not tuned: set with the elbow joins")
+    torus_join_fit_points: int = tuned(150, unit="points", chosen="not tuned: a speed bound, set with the elbow joins")
     reassign_refit_pixels: int = tuned(
         4000, unit="px", chosen="not tuned: a speed bound, set with the reassignment in c398b05")
     complete_k: float | None = tuned(
@@ -359,6 +383,14 @@ class SegmentationParams:
                      "complete_rounds"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)!r}")
+        if self.torus_join_k is not None and not (np.isfinite(self.torus_join_k) and self.torus_join_k > 0):
+            raise ValueError(f"torus_join_k must be a positive finite number or None (off), got {self.torus_join_k!r}")
+        if not (self.torus_join_cylinder_ratio >= 1 and self.torus_join_max_bend > 1):
+            raise ValueError("torus_join_cylinder_ratio must be >= 1 and torus_join_max_bend > 1, got "
+                             f"{self.torus_join_cylinder_ratio!r} and {self.torus_join_max_bend!r}")
+        if min(self.torus_join_min_pixels, self.torus_join_min_border) < 1 or self.torus_join_fit_points < 10:
+            raise ValueError("torus_join_min_pixels and torus_join_min_border must be >= 1, "
+                             "torus_join_fit_points >= 10")
         if self.axial_fit_points < 10:
             raise ValueError(f"axial_fit_points must be >= 10, got {self.axial_fit_points!r}")
         for name in ("max_variance_ratio", "plane_pair_tol", "kplanes_inlier_k", "face_broad_ratio", "elbow_cut_k",
