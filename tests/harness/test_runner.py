@@ -361,8 +361,8 @@ def test_segmentation_benchmark_times_and_scores_one_frame(tmp_path, capsys):
     assert f"{res['groups']['all']['correct_detection_rate']:.3f}" == rows[-1][6]
     # --steps: a VGA frame runs every step; they time the fastest repeat, within its total
     assert list(frame["steps_s"]) == ["edges", "curvature", "seeds", "growing", "merging", "full resolution",
-                                      "merging at full resolution", "splits", "reassignment", "peel",
-                                      "border completion", "final fits"]
+                                      "merging at full resolution", "splits", "reassignment", "elbow joins",
+                                      "peel", "border completion", "final fits"]
     assert 0.5 * frame["cpu_s"] < sum(frame["steps_s"].values()) <= frame["cpu_s"]
     assert "segmenter steps, process time per frame (ms)" in out
     # the described column is the figure the runner records for the core on the same trial
