@@ -137,7 +137,7 @@ def test_against_tables_render_from_json_into_a_markdown_block(tmp_path, capsys)
 
 #: the --against runs behind docs/performance.md's tables, in the order they are shown
 AGAINST_RUNS = ("segmentation-against-0b5908a.json", "segmentation-against-8353850.json",
-                "segmentation-against-445e44a.json")
+                "segmentation-against-445e44a.json", "segmentation-against-0b5908a-elbow-joins.json")
 
 
 def test_performance_doc_holds_the_committed_against_tables():
