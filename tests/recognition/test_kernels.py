@@ -105,17 +105,23 @@ def test_curvatures_equal_the_reference(seed, holes):
         _close(g, w)
 
 
-@given(SEEDS, st.integers(1, 12), st.floats(0.5, 60.0), st.integers(1, 40))
-@settings(max_examples=40, deadline=None)
-def test_grow_equals_the_reference(seed, n_seeds, thr, max_iter):
-    pts, sigma = _wavy_image(seed, 19, 25, 0.05, 0.3)
-    gen = np.random.default_rng(seed)
+def _wavy_grid(seed: int, h: int, w: int):
+    """A wavy image (5 % holes) as a grid: its valid pixels (h, w), neighbour links (across no jump) and state."""
+    pts, sigma = _wavy_image(seed, h, w, 0.05, 0.3)
     valid = np.isfinite(sigma)
     rng = np.linalg.norm(pts, axis=-1)
     rays = pts / rng[..., None]
     jump_h, jump_v = jump_pairs(rng, sigma, rays, 3.0, 2.0)
     links = _neighbour_links(valid.shape, valid, jump_h, jump_v)
     st_ = _State(X=pts.reshape(-1, 3), U=rays.reshape(-1, 3), S=sigma.ravel(), hk=np.ones(valid.size, np.int64))
+    return valid, links, st_
+
+
+@given(SEEDS, st.integers(1, 12), st.floats(0.5, 60.0), st.integers(1, 40))
+@settings(max_examples=40, deadline=None)
+def test_grow_equals_the_reference(seed, n_seeds, thr, max_iter):
+    valid, links, st_ = _wavy_grid(seed, 19, 25)
+    gen = np.random.default_rng(seed)
     labels = np.full(valid.shape, -1, np.int32)
     for k in range(n_seeds):  # small square seeds, some overlapping holes
         r, c = gen.integers(0, 17), gen.integers(0, 23)
@@ -281,14 +287,8 @@ def _patchy_state(seed: int, h: int, w: int, n_labels: int):
     the state, flat labels (h*w,), the planes (n_labels, 10) and the links' steps and flags."""
     from recognition.segmentation.reassignment import _flat_links
 
-    pts, sigma = _wavy_image(seed, h, w, 0.05, 0.3)
+    valid, links, st_ = _wavy_grid(seed, h, w)
     gen = np.random.default_rng(seed)
-    valid = np.isfinite(sigma)
-    rng = np.linalg.norm(pts, axis=-1)
-    rays = pts / rng[..., None]
-    jump_h, jump_v = jump_pairs(rng, sigma, rays, 3.0, 2.0)
-    links = _neighbour_links(valid.shape, valid, jump_h, jump_v)
-    st_ = _State(X=pts.reshape(-1, 3), U=rays.reshape(-1, 3), S=sigma.ravel(), hk=np.ones(valid.size, np.int64))
     labels = np.full(valid.shape, -1, np.int32)
     for k in range(3 * n_labels):
         r, c = gen.integers(0, h), gen.integers(0, w)
