@@ -68,6 +68,11 @@ class _State:
 # ------------------------------------------------------------------------------------- pixel groups
 
 
+def _kernel_labels(labels: np.ndarray) -> np.ndarray:
+    """A label image as the kernels take it: int32 or int64 as it is (they are compiled for both), else int64."""
+    return labels if labels.dtype in (np.int32, np.int64) else labels.astype(np.int64)
+
+
 def _groups(labels: np.ndarray) -> dict[int, np.ndarray]:
     """Flat pixel indices of each label >= 0 (increasing), by counting (:func:`.kernels.group_order`; the
     reference is :func:`_groups_reference`)."""
@@ -75,9 +80,7 @@ def _groups(labels: np.ndarray) -> dict[int, np.ndarray]:
     top = int(flat.max()) if flat.size else -1
     if top < 0:
         return {}
-    if flat.dtype not in (np.int32, np.int64):
-        flat = flat.astype(np.int64)
-    order, starts, counts = kernels.group_order(flat, top + 1)
+    order, starts, counts = kernels.group_order(_kernel_labels(flat), top + 1)
     return {k: order[s:s + c] for k, s, c in zip(np.flatnonzero(counts).tolist(), starts[counts > 0].tolist(),
                                                   counts[counts > 0].tolist(), strict=True)}
 
@@ -113,14 +116,19 @@ def _rms(z: np.ndarray) -> float:
     return float(np.sqrt(z @ z / z.size)) if z.size else float("inf")
 
 
+def _class_counts(groups: list[np.ndarray], hk: np.ndarray) -> np.ndarray:
+    """(G, 5) int: each group's pixels (flat indices) per curvature class ``hk`` (flat, int64, 0..4), in one
+    compiled count (:func:`.kernels.class_counts`); at least one group."""
+    sizes = np.fromiter((g.size for g in groups), np.int64, len(groups))
+    return kernels.class_counts(hk, np.concatenate(groups).astype(np.int64, copy=False), sizes)
+
+
 def _planar_groups(groups: list[np.ndarray], hk: np.ndarray) -> np.ndarray:
     """(G,) bool: :func:`_is_planar_counts` of each group's curvature classes ``hk`` (flat, int64, 0..4), in one
-    count (:func:`.kernels.class_counts`; the reference is :func:`_planar_groups_reference`)."""
+    count (:func:`_class_counts`; the reference is :func:`_planar_groups_reference`)."""
     if not groups:
         return np.zeros(0, bool)
-    sizes = np.fromiter((g.size for g in groups), np.int64, len(groups))
-    ix = np.concatenate(groups).astype(np.int64, copy=False)
-    c = kernels.class_counts(hk, ix, sizes)
+    c = _class_counts(groups, hk)
     return c[:, 1] >= c[:, 1:].max(axis=1)
 
 

@@ -12,7 +12,18 @@ import numpy as np
 from recognition.fitting import MIN_GRAZING, ray_residuals
 
 from . import kernels
-from .grid import _adjacency, _border_pairs, _groups, _is_planar_counts, _rms, _State, _subsample, _unique_pairs
+from .grid import (
+    _adjacency,
+    _border_pairs,
+    _class_counts,
+    _groups,
+    _is_planar_counts,
+    _kernel_labels,
+    _rms,
+    _State,
+    _subsample,
+    _unique_pairs,
+)
 from .quick_fits import (
     _group_grams,
     _group_sums,
@@ -153,8 +164,7 @@ def _merge(labels: np.ndarray, st: _State, params: SegmentationParams, jump_h, j
     nmax = params.merge_fit_points
     members = dict(groups)
     subs = {k: _subsample(v, nmax) for k, v in members.items()}
-    sizes = np.fromiter((v.size for v in members.values()), np.int64, len(members))
-    counts = dict(zip(members, kernels.class_counts(st.hk, np.concatenate(list(members.values())), sizes),
+    counts = dict(zip(members, _class_counts(list(members.values()), st.hk),
                       strict=True))  # each patch's pixels per curvature class (5,)
     planar_class = {k: _is_planar_counts(c) for k, c in counts.items()}
     parts = _FitPart.batch(subs, st)
@@ -291,8 +301,7 @@ def _enclosed_targets(labels: np.ndarray, valid: np.ndarray, jump_h: np.ndarray,
     """One round of :func:`_merge_enclosed`: the label each patch joins, itself when it stays (n_labels,); the
     compiled :func:`.kernels.enclosed_targets`, whose reference is :func:`_enclosed_targets_reference`.
     ``labels`` (H, W) < ``n_labels``, ``valid`` (H, W) the returns."""
-    lab = labels if labels.dtype in (np.int32, np.int64) else labels.astype(np.int64)
-    return kernels.enclosed_targets(lab, valid, jump_h, jump_v, int(n_labels), int(min_pixels))
+    return kernels.enclosed_targets(_kernel_labels(labels), valid, jump_h, jump_v, int(n_labels), int(min_pixels))
 
 
 def _enclosed_targets_reference(labels: np.ndarray, valid: np.ndarray, jump_h: np.ndarray, jump_v: np.ndarray,

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import kernels
-from .grid import _border_pairs
+from .grid import _border_pairs, _kernel_labels
 from .types import SegmentationParams
 
 
@@ -31,9 +31,9 @@ def _peel_weak(labels: np.ndarray, params: SegmentationParams, jump_h: np.ndarra
     """
     if labels.size == 0 or labels.max() < 0:
         return labels.astype(np.int32)
-    lab = labels if labels.dtype in (np.int32, np.int64) else labels.astype(np.int64)
-    return kernels.peel_weak(lab, jump_h, jump_v, int(labels.max()) + 1, int(params.min_region_pixels),
-                             float(params.thin_peel_fraction), float(params.stair_fraction))
+    return kernels.peel_weak(_kernel_labels(labels), jump_h, jump_v, int(labels.max()) + 1,
+                             int(params.min_region_pixels), float(params.thin_peel_fraction),
+                             float(params.stair_fraction))
 
 
 def _peel_weak_reference(labels: np.ndarray, params: SegmentationParams, jump_h: np.ndarray,
@@ -93,8 +93,7 @@ def _fragment_flags(labels: np.ndarray, ranges: np.ndarray, jump_h: np.ndarray, 
     """(n_labels,) bool: whether a patch has a neighbour with a return (not its own) on its surface (no jump)
     or nearer; ``labels`` (H, W) < ``n_labels``, ``ranges`` (H, W) NaN where no return. The compiled
     :func:`.kernels.fragment_flags`, whose reference is :func:`_fragment_flags_reference`."""
-    lab = labels if labels.dtype in (np.int32, np.int64) else labels.astype(np.int64)
-    return kernels.fragment_flags(lab, np.asarray(ranges, np.float64), jump_h, jump_v, int(n_labels))
+    return kernels.fragment_flags(_kernel_labels(labels), np.asarray(ranges, np.float64), jump_h, jump_v, int(n_labels))
 
 
 def _fragment_flags_reference(labels: np.ndarray, ranges: np.ndarray, jump_h: np.ndarray, jump_v: np.ndarray,
