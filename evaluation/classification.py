@@ -14,7 +14,7 @@ import numpy as np
 from scenes.vocabulary import CLASSES
 
 __all__ = ["CLASSES", "confusion_matrix", "accuracy", "per_class", "brier_score", "reliability_table",
-           "expected_calibration_error"]
+           "expected_calibration_error", "optimal_floor"]
 
 
 def confusion_matrix(truth: Sequence[str], predicted: Sequence[str], classes: Sequence[str] = CLASSES) -> np.ndarray:
@@ -83,3 +83,28 @@ def expected_calibration_error(table: list[dict[str, float | int]]) -> float | N
     if not n:
         return None
     return float(sum(r["count"] * abs(r["confidence"] - r["accuracy"]) for r in table) / n)
+
+
+def optimal_floor(truth: Sequence[str], raw_probabilities: np.ndarray,
+                  classes: Sequence[str] = CLASSES) -> float | None:
+    """The floor ``f`` in [0, 1] minimising the Brier score of ``(1 - f) q + f / C`` (``q``: the rows of
+    ``raw_probabilities``, mixed with the uniform distribution over the ``C`` classes).
+
+    The Brier score is quadratic in ``f``: with ``u`` the uniform row and ``y`` the one-hot truth, its minimum is
+    at ``f* = sum (q - y).(q - u) / sum |q - u|²``, clipped to [0, 1]. None without patches or when every row is
+    already uniform.
+
+    Parameters
+    ----------
+    raw_probabilities : ndarray of shape (N, C), rows summing to 1, columns in ``classes`` order.
+    """
+    if not len(truth):
+        return None
+    q = np.asarray(raw_probabilities, dtype=np.float64)
+    y = np.zeros_like(q)
+    y[np.arange(len(truth)), [classes.index(t) for t in truth]] = 1.0
+    d = q - 1.0 / q.shape[1]
+    den = float(np.sum(d * d))
+    if den <= 0:
+        return None
+    return float(np.clip(np.sum((q - y) * d) / den, 0.0, 1.0))

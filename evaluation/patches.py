@@ -104,6 +104,8 @@ def classification_section(description, truth: ScanTruth, actual: SceneModel) ->
             "plausibilities": {k: float(v) for k, v in cls.plausibilities.items()},
             "reason": cls.reason, "small": bool(patch.small), "noisy": bool(patch.noisy),
         }
+        if "path" in cls.details:  # how the label was reached, and the floor its probabilities were mixed with
+            row["path"], row["floor"] = cls.details["path"], float(cls.details["floor"])
         if surf is not None and "radius_m" in cls.invariants and surf.part in ("side", "surface"):
             true_r = _true_radius(actual.feature(surf.feature_id))
             if true_r is not None:

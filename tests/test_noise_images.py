@@ -14,6 +14,7 @@ import pytest
 from PIL import Image
 
 from harness.cli import main as harness_main
+from recognition.classification import SelectParams
 from recognition.describe import DescribeParams, describe
 from sensors.readers import ReaderError, load_scan
 
@@ -72,12 +73,17 @@ def test_pure_noise_gives_no_confident_patch(tmp_path, kind):
 
 
 def test_the_noise_test_is_what_removes_the_confidence(tmp_path):
-    """Gaussian noise of 50 mm about 2 m forms one large patch; the classifier alone calls it OTH at high
-    probability ("best primitive PLAN does not fit within noise"), the support test makes it unsure."""
+    """Gaussian noise of 50 mm about 2 m forms one large patch; the classifier alone, with the base floor on every
+    decision path, calls it OTH at high probability ("best primitive PLAN does not fit within noise"), the support
+    test makes it unsure. (The floor of that decision path, ``SelectParams.unexplained_floor``, fitted on the
+    calibration suite's merged patches, makes it unsure too.)"""
     loaded = load_scan(_png(tmp_path / "noise.png", _noise("gaussian 2 m sigma 50 mm", np.random.default_rng(1))),
                        intrinsics=K)
-    without = describe(loaded.scan, DescribeParams(max_local_scatter=None))
+    base = SelectParams(unexplained_floor=SelectParams().prob_floor)
+    without = describe(loaded.scan, DescribeParams(max_local_scatter=None, classifier_params=base))
     assert _confident(without, 200), "the image no longer gives confident patches without the test"
+    floored = describe(loaded.scan, DescribeParams(max_local_scatter=None))
+    assert not _confident(floored, 200)
     desc = describe(loaded.scan, DescribeParams())
     big = [p for p in desc.patches if p.n_pixels >= 200]
     assert big and all(p.classification.reason.startswith("support not better than noise") for p in big)

@@ -128,7 +128,21 @@ class SelectParams:
         segmenter), with T in {1, 2, 4, ..., 32}, f in {0, 0.05, 0.1, 0.2, 0.3}, gof_width in {0.1, ..., 1.6}:
         best T = 1, f = 0.1, gof_width = 0.1 (Brier 0.240 -> 0.227 at accuracy 0.879). The remaining Brier
         is that of confident errors on patches the segmenter merged across two surfaces, which no
-        re-weighting of the posterior fixes.
+        re-weighting of the posterior fixes. The floor of the labels reached by the criterion, the plane gate
+        and the elbow test (see ``rescue_floor`` and ``unexplained_floor`` for the other two decision paths).
+    rescue_floor : float
+        The floor (as ``prob_floor``) of a label the trimmed rescue gives (``min_inliers``; decision path
+        ``"rescue"``, :func:`recognition.classification.select.decision_path`): such a patch is a mixture by
+        construction, and its label, the primitive of its majority, is right less often than its inlier
+        fraction says. At least ``prob_floor``. Fitted on the ``calibration`` suite with
+        ``python -m harness.bench.confidence`` (the floor that minimises the Brier score of the path's patches).
+    unexplained_floor : float
+        The floor of OTH when no primitive fits within noise and no torus explains the points (decision path
+        ``"unexplained"``): mostly patches the segmenter merged across surfaces, whose majority (the truth the
+        evaluation scores) is a primitive. At least ``prob_floor``, below 1 (at 1 every class is equal). On the
+        ``calibration`` suite OTH was right on 3 of these 21 patches: the Brier-optimal floor is 1, and 0.75
+        gives a certain OTH the probabilities of a patch not better than noise
+        (:data:`recognition.describe.NOISE_PROBABILITIES`: OTH 0.4, each primitive 0.15).
     range_refit : bool
         With sub-ray directions (``rays`` of :func:`classify_patch`), refit a chosen cylinder or sphere in
         range space (:func:`recognition.fitting.refit_along_rays`), which removes the radius bias of the
@@ -224,6 +238,13 @@ class SelectParams:
     prob_floor: float = tuned(
         0.1, unit="probability", chosen="calibration (phase 1): f = 0.1 best of {0, 0.05, 0.1, 0.2, 0.3} by the "
         "Brier score, with temperature and gof_width (83bb055)")
+    rescue_floor: float = tuned(
+        0.37, unit="probability", chosen="calibration: the Brier-optimal floor of the 38 rescued patches of >= 200 "
+        "pixels, 0.366 (python -m harness.bench.confidence on its run; their accuracy 0.684 at stated 0.880)")
+    unexplained_floor: float = tuned(
+        0.75, unit="probability", chosen="calibration: Brier-optimal at the bound 1 (3 of its 21 patches right at "
+        "stated 0.919; python -m harness.bench.confidence); 0.75 gives a certain OTH the probabilities of a patch "
+        "not better than noise (OTH 0.4, each primitive 0.15)")
     range_refit: bool = tuned(
         True, unit="-", chosen="on since 83bb055: the factory scanner's cylinder radii, 2.1 % low (median) from the "
         "geometric fit, within 0.02 % (the first phase's default, now classic)")
@@ -277,3 +298,19 @@ class SelectParams:
                 raise ValueError(f"{name} must be >= 10, got {getattr(self, name)!r}")
         if self.refit_iter < 1:
             raise ValueError(f"refit_iter must be >= 1, got {self.refit_iter!r}")
+        if not 0 <= self.prob_floor < 1:
+            raise ValueError(f"prob_floor must be in [0, 1), got {self.prob_floor!r}")
+        for name in ("rescue_floor", "unexplained_floor"):
+            v = getattr(self, name)
+            if not self.prob_floor <= v < 1:
+                raise ValueError(f"{name} must be in [prob_floor = {self.prob_floor:g}, 1), got {v!r}")
+
+    def floor(self, path: str) -> float:
+        """The probability floor of a label reached by decision path ``path`` (one of :data:`DECISION_PATHS`)."""
+        if path not in DECISION_PATHS:
+            raise ValueError(f"decision path must be one of {', '.join(map(repr, DECISION_PATHS))}, got {path!r}")
+        return {"rescue": self.rescue_floor, "unexplained": self.unexplained_floor}.get(path, self.prob_floor)
+
+
+#: How the model-selection classifier reaches a label (:func:`recognition.classification.select.decision_path`).
+DECISION_PATHS = ("criterion", "plane_gate", "elbow", "rescue", "unexplained")

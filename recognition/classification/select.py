@@ -173,10 +173,6 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
     pr["OTH"] = post.get("OTH", 0.0) + post.get("TOR", 0.0) + sum(post.get(c, 0.0) * (1.0 - gof.get(c, 0.0))
                                                                   for c in ("PLAN", "CYL", "SPH", "CONE"))
     probs = _probs(**pr)
-    if params.prob_floor > 0:
-        probs = _probs(**{c: (1.0 - params.prob_floor) * v + params.prob_floor / len(CLASSES)
-                          for c, v in probs.items()})
-    plaus = {c: float(probs[c]) for c in ("CYL", "SPH", "CONE")}
     label = max(CLASSES, key=lambda c: probs[c])
     details = {"criterion": crit, "gof": gof, "posterior": post, "fits": fits, "n_used": n, **extra}
     # the fits' covariances treat every point as an independent error; errors shared by groups of
@@ -193,12 +189,13 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
             pr[label] = frac
             pr["OTH"] = 1.0 - frac
             probs = _probs(**pr)
-            if params.prob_floor > 0:
-                probs = _probs(**{c: (1.0 - params.prob_floor) * v + params.prob_floor / len(CLASSES)
-                                  for c, v in probs.items()})
-            plaus = {c: float(probs[c]) for c in ("CYL", "SPH", "CONE")}
             label = max(CLASSES, key=lambda c: probs[c])
             details["trimmed_inlier_fraction"] = frac
+    path = decision_path(label, extra.get("curved_fits_skipped", False), "trimmed_inlier_fraction" in details,
+                         _elbow(crit, gof))
+    details["path"], details["floor"] = path, params.floor(path)
+    probs = _floored(probs, details["floor"])
+    plaus = {c: float(probs[c]) for c in ("CYL", "SPH", "CONE")}
     if label == "OTH":
         if _elbow(crit, gof):
             t = fits["TOR"]
@@ -236,6 +233,28 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
 
 
 # ------------------------------------------------------------------------------------------ helpers
+
+
+def decision_path(label: str, plane_gate: bool, rescued: bool, elbow: bool) -> str:
+    """How :func:`_decide` reached its label: one of :data:`recognition.classification.params.DECISION_PATHS`.
+
+    ``"plane_gate"``: the curved models were not fitted (the plane gate) and the plane won; ``"rescue"``: a
+    primitive fits the patch's majority (the trimmed rescue); ``"elbow"``: OTH, a torus explains the points;
+    ``"unexplained"``: OTH, no primitive fits within noise or a general quadric fits better; ``"criterion"``:
+    a primitive won the criterion outright.
+    """
+    if rescued:
+        return "rescue"
+    if label == "OTH":
+        return "elbow" if elbow else "unexplained"
+    return "plane_gate" if plane_gate else "criterion"
+
+
+def _floored(probs: dict[str, float], floor: float) -> dict[str, float]:
+    """``(1 - floor) p + floor / 5``: mixed with the uniform distribution (the label is kept)."""
+    if floor <= 0:
+        return probs
+    return _probs(**{c: (1.0 - floor) * v + floor / len(CLASSES) for c, v in probs.items()})
 
 
 def _polish(fit: Primitive, pts, sig, nrm, huber, trim_sigma: float) -> Primitive:

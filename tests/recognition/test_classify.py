@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import _support
 import numpy as np
 import pytest
@@ -421,3 +423,59 @@ def test_trimmed_rescue_starts_from_the_points_the_gross_outlier_test_keeps():
     _check_result(r)
     assert r.label == "CYL" and r.details["trimmed_inlier_fraction"] >= 0.8
     assert 0.07 <= r.invariants["radius_m"][0] <= 0.12
+
+
+def _path_cases():
+    """One patch per decision path of ``select``: ``(path, points, sigma, params, planar_hint)``."""
+    plane = sample_patch("plane", np.random.default_rng(3), "factory_scanner")
+    cyl = sample_patch("cylinder", np.random.default_rng(0), "factory_scanner", n_max=2000)
+    elbow = sample_patch("torus", np.random.default_rng([944127]), "mockup_laser", n_max=2000, noise_scale=0.5)
+    merged = cyl.points.copy()  # 15 % of the pixels 8 sigma behind: a merged neighbour (as above)
+    u = merged / np.linalg.norm(merged, axis=1, keepdims=True)
+    k = np.random.default_rng(100).choice(len(merged), int(0.15 * len(merged)), replace=False)
+    merged[k] += (8.0 * cyl.sigma[k])[:, None] * u[k]
+    return [("plane_gate", plane.points, plane.sigma, SelectParams(), True),
+            ("criterion", cyl.points, cyl.sigma, SelectParams(), False),
+            ("elbow", elbow.points, elbow.sigma, SelectParams(), False),
+            ("rescue", merged, cyl.sigma, SelectParams(), False),
+            ("unexplained", merged, cyl.sigma, SelectParams(min_inliers=None), False)]
+
+
+@pytest.mark.parametrize("case", range(5))
+def test_each_decision_path_gets_its_own_floor(case):
+    """Every label records how it was reached; its probabilities are the raw ones mixed with that path's floor
+    (``SelectParams.floor``), and only that path's floor moves them (the label stays)."""
+    from recognition.classification.params import DECISION_PATHS
+
+    path, pts, sig, params, hint = _path_cases()[case]
+    r = classify_patch(pts, sig, params=params, planar_hint=hint)
+    _check_result(r)
+    assert r.details["path"] == path and r.details["floor"] == params.floor(path)
+    assert r.label == {"plane_gate": "PLAN", "criterion": "CYL", "elbow": "OTH", "rescue": "CYL",
+                       "unexplained": "OTH"}[path]
+    raised = {"rescue_floor": 0.5, "unexplained_floor": 0.6}
+    for field in ("prob_floor", *raised):
+        moved = {**dataclasses.asdict(params), field: raised.get(field, 0.0)}  # prob_floor 0: the others kept
+        other = classify_patch(pts, sig, params=SelectParams(**moved), planar_hint=hint)
+        assert other.label == r.label and other.details["path"] == path
+        # both are the same raw probabilities, mixed with their floors
+        for c in CLASSES:
+            f0, f1 = r.details["floor"], other.details["floor"]
+            raw0 = (r.probabilities[c] - f0 / 5) / (1 - f0)
+            raw1 = (other.probabilities[c] - f1 / 5) / (1 - f1)
+            assert raw0 == pytest.approx(raw1, abs=1e-9)
+        touched = field == "prob_floor" and path not in ("rescue", "unexplained") or \
+            field == {"rescue": "rescue_floor", "unexplained": "unexplained_floor"}.get(path)
+        assert (other.probabilities != r.probabilities) == touched, (path, field)
+    assert set(DECISION_PATHS) == {c[0] for c in _path_cases()}
+
+
+def test_path_floors_are_validated():
+    with pytest.raises(ValueError, match="rescue_floor"):
+        SelectParams(rescue_floor=0.05)  # below prob_floor
+    with pytest.raises(ValueError, match="unexplained_floor"):
+        SelectParams(unexplained_floor=1.0)  # every class equal: the label is lost
+    with pytest.raises(ValueError, match="prob_floor"):
+        SelectParams(prob_floor=-0.1)
+    with pytest.raises(ValueError, match="decision path"):
+        SelectParams().floor("guess")
