@@ -95,7 +95,8 @@ class ChangeParams:
     shape_margin : it disagrees only beyond that bound times ``1 + shape_margin``; in between the fit says
         nothing (neither confirms nor contradicts the model: no verdict rests on a coin flip at the bound).
     extent_margin_px : an edge of a present face or cylinder body moved (:mod:`recognition.change.extent`) when
-        pixels lie beyond it by more than ``k_sigma`` pose sigmas plus this many pixel footprints.
+        pixels lie beyond it by more than ``k_sigma`` pose sigmas plus this many pixel footprints, lengthened by
+        the footprint's stretch along the edge's axis on the oblique surface.
     extent_min_pixels : fewest pixels beyond an edge (grown surface, or revealed background past the observed
         edge) that move it.
     extent_revealed_share : a shrunk edge needs at least this share of the model's pixels past the observed edge
@@ -244,11 +245,18 @@ def _cos_incidence(scan: Scan, normals: np.ndarray) -> np.ndarray:
 
 def extent_margin(scan: Scan, normals: np.ndarray, cov_T: np.ndarray | None, params: ChangeParams) -> np.ndarray:
     """Per-pixel margin (H, W), metres, by which an edge must move on the surface to count: ``k_sigma`` pose
-    sigmas plus ``extent_margin_px`` pixel footprints, both over the cosine of incidence."""
+    sigmas plus ``extent_margin_px`` pixel footprints, both over the cosine of incidence (the worst direction on
+    the surface: the margin of a whole patch, :func:`recognition.change.extent.outgrows`; an edge's own margin is
+    stretched along its axis only, :func:`extent_margin_across`)."""
+    return extent_margin_across(scan, cov_T, params) / _cos_incidence(scan, normals)
+
+
+def extent_margin_across(scan: Scan, cov_T: np.ndarray | None, params: ChangeParams) -> np.ndarray:
+    """Per-pixel margin (H, W), metres, across the ray: ``k_sigma`` pose sigmas plus ``extent_margin_px`` pixel
+    footprints, before the stretch of the footprint on an oblique surface."""
     spacing = footprint(scan.sensor.ray_directions())
-    on_surface = (params.k_sigma * _pose_sigma(scan, cov_T, params) +
-                  params.extent_margin_px * np.nan_to_num(scan.range) * spacing)
-    return on_surface / _cos_incidence(scan, normals)
+    return (params.k_sigma * _pose_sigma(scan, cov_T, params) +
+            params.extent_margin_px * np.nan_to_num(scan.range) * spacing)
 
 
 def classify_pixels(scan: Scan, predicted: Prediction, model: SceneModel, allowance: np.ndarray
@@ -412,7 +420,8 @@ def detect_changes(description: SceneDescription, scan: Scan, model: SceneModel,
     flat_cls = pix_cls.reshape(-1)
     edge_margin = extent_margin(scan, normals, cov_T_world_sensor, params)
     extents = _ExtentEvidence(scan, T, pts_w, flat_cls, (scan.range - predicted.range).reshape(-1), allowance,
-                              edge_margin, _no_return(scan, predicted, params.silent_clearance), params)
+                              extent_margin_across(scan, cov_T_world_sensor, params),
+                              _no_return(scan, predicted, params.silent_clearance), params)
     feature_pixels = predicted.feature_pixels()
     by_id = {f.id: f for f in model.features}
     diag = _model_diagonal(model)
@@ -543,7 +552,7 @@ class _ExtentEvidence:
         self.cls = flat_cls
         self.behind = np.nan_to_num(behind_m, nan=0.0) > 0  # the data lie behind the predicted surface
         self.allowance = allowance.reshape(-1)
-        self.margin = margin.reshape(-1)
+        self.margin = margin.reshape(-1)  # across the ray (extent_changes stretches it along each axis)
         self.no_return = no_return.reshape(-1)
         self.cos_grazing = _cos_grazing(scan, params)
         self.params = params

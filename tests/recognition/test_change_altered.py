@@ -11,11 +11,11 @@ from evaluation.aggregate import aggregate_change
 from evaluation.oracles import truth_classification, truth_segmentation
 from recognition.change import ChangeParams, detect_changes
 from recognition.change.detection import _agrees, _same_place, _same_shape
-from recognition.change.extent import GROWN, SHRUNK, extent_changes, outgrows, ray_hits, return_expected
+from recognition.change.extent import GROWN, SHRUNK, _stretch, extent_changes, outgrows, ray_hits, return_expected
 from recognition.describe import core_sigma, describe
 from recognition.localisation import ModelPredictor
 from scenes import builders
-from scenes.features import Plane, Sphere, Torus
+from scenes.features import Cylinder, Plane, Sphere, Torus
 from scenes.geometry import look_at
 from scenes.model import SceneModel
 from sensors.config import sensor_from_yaml
@@ -165,6 +165,56 @@ def test_extent_changes_of_a_plane_from_pixels():
     assert shrunk[0].amount_m == pytest.approx(0.2, abs=0.03)
     assert edges(found, inside[x[inside] <= -0.3], np.flatnonzero(x > 0.6)) == []  # a slide along u
     assert edges(inside, np.zeros(0, int), np.zeros(0, int)) == []
+
+
+def test_a_footprint_stretches_along_the_incidence_plane_only():
+    """On the plane z = 0 a ray at incidence i in the x-z plane: a footprint across it lengthens by 1 / cos i along
+    x, not along y; in between by sqrt(1 + (a.e)² tan² i); cos i is held at 0.2 or more. On a cylinder the same
+    along its axis, with the radial normal at the hit."""
+    face = Plane("f", centre=np.zeros(3), normal=np.array([0, 0, 1.0]), u_axis=np.array([1.0, 0, 0]),
+                 half_size=(1.0, 1.0))
+    for deg in (0.0, 30.0, 60.0, 85.0):
+        i = math.radians(deg)
+        ray = np.array([[math.sin(i), 0.0, -math.cos(i)]])
+        hit = ray_hits(face, np.array([0, 0, 1.0]), ray)
+        cos = max(math.cos(i), 0.2)
+        assert _stretch(face, ray, hit, np.array([1.0, 0, 0]))[0] == pytest.approx(1 / cos)
+        assert _stretch(face, ray, hit, np.array([0, 1.0, 0]))[0] == pytest.approx(1.0)
+        diag = np.array([1.0, 1.0, 0]) / math.sqrt(2)
+        assert _stretch(face, ray, hit, diag)[0] == pytest.approx(math.sqrt(1 + 0.5 * (1 / cos**2 - 1)))
+    pipe = Cylinder("p", centre=np.zeros(3), axis=np.array([0, 0, 1.0]), radius=0.5, length=2.0)
+    i = math.radians(60)
+    ray = np.array([[-math.cos(i), 0.0, math.sin(i)]])  # meets the side at x = 0.5 from (2.5, 0, z0)
+    origin = np.array([2.5, 0.0, -2.0 * math.tan(i)])
+    hit = ray_hits(pipe, origin, ray)
+    assert hit[0] == pytest.approx([0.5, 0.0, 0.0], abs=1e-9)
+    assert _stretch(pipe, ray, hit, pipe.axis)[0] == pytest.approx(1 / math.cos(i))
+
+
+def test_an_edge_margin_is_stretched_along_the_incidence_plane_only():
+    """A face seen obliquely along v (about 76 deg incidence), a margin of 0.05 m across the ray: a strip grown
+    0.1 m beyond its +u edge moves that edge (the footprint is not stretched along u), the same strip beyond its +v
+    edge does not (along v the margin is about 4.7 times longer there, 0.24 m); a strip 0.3-0.4 m beyond it does."""
+    face = Plane("f", centre=np.zeros(3), normal=np.array([0, 0, 1.0]), u_axis=np.array([1.0, 0, 0]),
+                 half_size=(0.5, 0.5))
+    origin = np.array([0.0, -4.0, 1.0])
+    xs, ys = np.meshgrid(np.linspace(-0.9, 0.9, 73), np.linspace(-0.9, 0.9, 73))
+    targets = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
+    rays = (targets - origin) / np.linalg.norm(targets - origin, axis=1, keepdims=True)
+    n = len(targets)
+    x, y = xs.ravel(), ys.ravel()
+    inside = np.flatnonzero((np.abs(x) <= 0.5) & (np.abs(y) <= 0.5))
+    across = np.full(n, 0.05)
+
+    def edges(cand):
+        return extent_changes(face, origin, rays, targets, across, np.full(n, 0.005), inside, np.zeros(0, int),
+                              inside, cand, 20, 0.5, 0.05)
+
+    grown = edges(np.flatnonzero((x > 0.55) & (x <= 0.6) & (np.abs(y) <= 0.5)))
+    assert [(e.axis, e.side, e.kind) for e in grown] == [(0, 1, GROWN)]
+    assert edges(np.flatnonzero((y > 0.55) & (y <= 0.6) & (np.abs(x) <= 0.5))) == []
+    further = edges(np.flatnonzero((y > 0.8) & (y <= 0.9) & (np.abs(x) <= 0.5)))  # beyond 0.05 / cos i
+    assert [(e.axis, e.side, e.kind) for e in further] == [(1, 1, GROWN)]
 
 
 def test_a_patch_outgrows_a_face_only_when_it_is_larger_along_some_direction():
