@@ -55,9 +55,14 @@ def brier_score(truth: Sequence[str], probabilities: np.ndarray, classes: Sequen
     if not len(truth):
         return None
     p = np.asarray(probabilities, dtype=np.float64)
-    onehot = np.zeros_like(p)
-    onehot[np.arange(len(truth)), [classes.index(t) for t in truth]] = 1.0
-    return float(np.mean(np.sum((p - onehot) ** 2, axis=1)))
+    return float(np.mean(np.sum((p - _one_hot(truth, classes)) ** 2, axis=1)))
+
+
+def _one_hot(truth: Sequence[str], classes: Sequence[str]) -> np.ndarray:
+    """(N, C) rows with 1 in each truth's column, ``classes`` order."""
+    y = np.zeros((len(truth), len(classes)))
+    y[np.arange(len(truth)), [classes.index(t) for t in truth]] = 1.0
+    return y
 
 
 def reliability_table(truth: Sequence[str], predicted: Sequence[str], confidence: Sequence[float],
@@ -101,8 +106,7 @@ def optimal_floor(truth: Sequence[str], raw_probabilities: np.ndarray,
     if not len(truth):
         return None
     q = np.asarray(raw_probabilities, dtype=np.float64)
-    y = np.zeros_like(q)
-    y[np.arange(len(truth)), [classes.index(t) for t in truth]] = 1.0
+    y = _one_hot(truth, classes)
     d = q - 1.0 / q.shape[1]
     den = float(np.sum(d * d))
     if den <= 0:
