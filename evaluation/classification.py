@@ -1,5 +1,6 @@
 """Classification metrics over patches: accuracy, per-class precision and recall, confusion matrix,
-multi-class Brier score and a reliability table (DESIGN 7 and 10.8).
+multi-class Brier score, a reliability table (DESIGN 7 and 10.8) and how sure each of the classifier's decision
+paths is.
 
 Classes are the paper's PLAN, CYL, SPH, CONE, OTH. Each patch takes the truth class of the surface it
 mostly covers.
@@ -7,14 +8,16 @@ mostly covers.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
 from scenes.vocabulary import CLASSES
 
 __all__ = ["CLASSES", "confusion_matrix", "accuracy", "per_class", "brier_score", "reliability_table",
-           "expected_calibration_error", "optimal_floor"]
+           "expected_calibration_error", "optimal_floor",
+           "decision_path_table"]
 
 
 def confusion_matrix(truth: Sequence[str], predicted: Sequence[str], classes: Sequence[str] = CLASSES) -> np.ndarray:
@@ -112,3 +115,35 @@ def optimal_floor(truth: Sequence[str], raw_probabilities: np.ndarray,
     if den <= 0:
         return None
     return float(np.clip(np.sum((q - y) * d) / den, 0.0, 1.0))
+
+
+def _raw(row: Mapping[str, Any]) -> np.ndarray:
+    """A patch record's probabilities before the floor its classifier mixed them with (``row["floor"]``)."""
+    p = np.array([row["probabilities"][c] for c in CLASSES], dtype=np.float64)
+    f = row.get("floor", 0.0)
+    return (p - f / len(CLASSES)) / (1.0 - f)
+
+
+def decision_path_table(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """How sure each decision path of the classifier is: per path of the patch records ``rows`` (their ``path``;
+    rows without one, e.g. patches not better than noise: ``"none"``) and ``"all"``, ``{"path", "count",
+    "accuracy", "confidence", "brier", "floor", "optimal_floor"}``: the mean probability of the label, the floor the
+    run applied (the path's first row's) and the one that minimises the path's Brier score on the probabilities
+    before it (:func:`optimal_floor`)."""
+    groups: dict[str, list[Mapping[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault(r.get("path", "none"), []).append(r)
+    out = []
+    for path, rs in sorted(groups.items()) + [("all", list(rows))]:
+        if not rs:
+            continue
+        truth = [r["truth"] for r in rs]
+        probs = np.array([[r["probabilities"][c] for c in CLASSES] for r in rs])
+        whole = path == "all"
+        out.append({"path": path, "count": len(rs),
+                    "accuracy": float(np.mean([r["label"] == r["truth"] for r in rs])),
+                    "confidence": float(np.mean([r["probabilities"][r["label"]] for r in rs])),
+                    "brier": brier_score(truth, probs),
+                    "floor": None if whole else rs[0].get("floor"),
+                    "optimal_floor": None if whole else optimal_floor(truth, np.array([_raw(r) for r in rs]))})
+    return out

@@ -29,6 +29,7 @@ from typing import Any
 
 from evaluation import metrics
 from evaluation.attribution import attribute, largest_losses
+from evaluation.classification import decision_path_table
 from evaluation.metrics import HOOVER_RATES, MIN_SCORED_PIXELS, TIMING_STAGES, Metric
 from evaluation.verdicts import Comparison
 from reports import figures
@@ -496,11 +497,36 @@ def classification_section(run: RunData, table_trial: str | None) -> Section:
         blocks.append(Image(figures.reliability_figure(rel), "Reliability diagram: how often the winning label is "
                             "right against the probability the method gave it (below: patches per bin).",
                             alt="reliability diagram"))
+    paths = decision_path_rows(run, present, first.get("min_patch_pixels", MIN_SCORED_PIXELS))
+    if paths:
+        blocks.append(Table(("method", "decision path", "patches", "accuracy", "stated confidence", "Brier",
+                             "floor", "Brier-optimal floor"), tuple(paths),
+                            caption="How sure each decision path of the classifier is (how it reached the label: "
+                                    "plane_gate, criterion, elbow, rescue of a merged patch's majority, unexplained "
+                                    "OTH); a path whose accuracy falls below its stated confidence overclaims. "
+                                    "`python -m harness.bench.confidence RUN` prints the same."))
     subs = [paper_table_section(run, table_trial)]
     reproduction = paper_reproduction_section(run.ok_records(), str(run.summary.get("suite") or ""))
     if reproduction is not None:  # the paper's table against every condition of the run (issue 37)
         subs.append(reproduction)
     return Section("classification", "Classification", blocks, subs)
+
+
+def decision_path_rows(run: RunData, methods: Mapping[str, Any], min_pixels: int) -> list[tuple[Cell, ...]]:
+    """The report's rows of :func:`evaluation.classification.decision_path_table` for every method whose patch
+    records say how their labels were reached (``path``), over the successful trials' patches of ``min_pixels``
+    pixels or more."""
+    out = []
+    for m in methods:
+        rows = [p for r in run.ok_records() for p in (_get(r, "methods", m, "classification", "patches") or ())
+                if p.get("n_pixels", 0) >= min_pixels]
+        if not any("path" in p for p in rows):
+            continue
+        for t in decision_path_table(rows):
+            out.append((Cell(m), Cell(t["path"]), Cell(str(t["count"]), "num"), Cell(fmt(t["accuracy"]), "num"),
+                        Cell(fmt(t["confidence"]), "num"), Cell(fmt(t["brier"]), "num"), Cell(fmt(t["floor"]), "num"),
+                        Cell(fmt(t["optimal_floor"]), "num")))
+    return out
 
 
 def choose_table_trial(run: RunData, gallery: Sequence[GalleryTrial] | None, method: str = "paper") -> str | None:

@@ -4,55 +4,23 @@
 classification records of a ``harness run`` / ``harness bench`` results directory and prints, per decision path
 of the model-selection classifier (:data:`recognition.classification.params.DECISION_PATHS`: how the label was
 reached) and over all patches of ``--min-pixels`` or more: the count, the accuracy, the mean probability of the
-label, the Brier score and the floor that minimises it (:func:`evaluation.classification.optimal_floor`, fitted
-on the probabilities before the floor the run applied). The floors of ``SelectParams`` (``prob_floor``,
-``rescue_floor``, ``unexplained_floor``) are fitted with it on the ``calibration`` suite, never on ``default``
-(DESIGN 10.8).
+label, the Brier score and the floor that minimises it, fitted on the probabilities before the floor the run
+applied (:func:`evaluation.classification.decision_path_table`; the report shows the same table). The floors of
+``SelectParams`` (``prob_floor``, ``rescue_floor``, ``unexplained_floor``) are fitted with it on the
+``calibration`` suite, never on ``default`` (DESIGN 10.8).
 """
 
 from __future__ import annotations
 
 import argparse
-import collections
 import json
 import sys
 from pathlib import Path
 
-import numpy as np
-
-from evaluation.classification import CLASSES, brier_score, optimal_floor
+from evaluation.classification import decision_path_table
 from evaluation.metrics import MIN_SCORED_PIXELS
 
-__all__ = ["main", "path_table"]
-
-
-def _raw(row: dict) -> np.ndarray:
-    """The row's probabilities before the floor the classifier mixed them with (``row["floor"]``)."""
-    p = np.array([row["probabilities"][c] for c in CLASSES], dtype=np.float64)
-    f = row.get("floor", 0.0)
-    return (p - f / len(CLASSES)) / (1.0 - f)
-
-
-def path_table(rows: list[dict]) -> list[dict]:
-    """Per decision path (rows without one: ``"none"``, e.g. patches not better than noise) and ``"all"``:
-    ``{"path", "count", "accuracy", "confidence", "brier", "floor", "optimal_floor"}`` (``floor``: the one the run
-    applied, the first row's; ``optimal_floor``: on the raw probabilities)."""
-    groups: dict[str, list[dict]] = collections.defaultdict(list)
-    for r in rows:
-        groups[r.get("path", "none")].append(r)
-    out = []
-    for path, rs in sorted(groups.items()) + [("all", rows)]:
-        if not rs:
-            continue
-        truth = [r["truth"] for r in rs]
-        probs = np.array([[r["probabilities"][c] for c in CLASSES] for r in rs])
-        out.append({"path": path, "count": len(rs),
-                    "accuracy": float(np.mean([r["label"] == r["truth"] for r in rs])),
-                    "confidence": float(np.mean([r["probabilities"][r["label"]] for r in rs])),
-                    "brier": brier_score(truth, probs),
-                    "floor": rs[0].get("floor") if path != "all" else None,
-                    "optimal_floor": optimal_floor(truth, np.array([_raw(r) for r in rs])) if path != "all" else None})
-    return out
+__all__ = ["main"]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -79,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{args.run_dir}: no classified patches of method {args.method!r}", file=sys.stderr)
         return 2
     print(f"{'path':<12} {'count':>6} {'accuracy':>9} {'confidence':>11} {'brier':>7} {'floor':>6} {'optimal':>8}")
-    for t in path_table(rows):
+    for t in decision_path_table(rows):
         fl = "" if t["floor"] is None else f"{t['floor']:.3f}"
         opt = "" if t["optimal_floor"] is None else f"{t['optimal_floor']:.3f}"
         print(f"{t['path']:<12} {t['count']:>6} {t['accuracy']:>9.3f} {t['confidence']:>11.3f} {t['brier']:>7.3f} "

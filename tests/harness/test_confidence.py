@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from evaluation.classification import CLASSES, brier_score, optimal_floor
-from harness.bench.confidence import main, path_table
+from evaluation.classification import CLASSES, brier_score, decision_path_table, optimal_floor
+from harness.bench.confidence import main
 
 
 @settings(max_examples=60, deadline=None)
@@ -52,14 +52,14 @@ def test_path_table_groups_by_path_and_inverts_the_runs_floor():
         [_row("rescue", "CYL", "CYL", 0.9, floor=0.3), _row("rescue", "CYL", "CONE", 0.9, floor=0.3)] + \
         [{**_row("x", "OTH", "OTH", 0.4, floor=0.0), "path": None}]
     del rows[-1]["path"]
-    t = {r["path"]: r for r in path_table(rows)}
+    t = {r["path"]: r for r in decision_path_table(rows)}
     assert set(t) == {"criterion", "rescue", "none", "all"}
     assert t["criterion"]["count"] == 10 and t["criterion"]["accuracy"] == 0.9
     assert t["criterion"]["confidence"] == pytest.approx(0.92)
     assert t["rescue"]["floor"] == 0.3
     # the optimal floor is fitted on the raw probabilities: the same whatever floor the run applied
     again = [_row("criterion", r["label"], r["truth"], 1.0, floor=0.5) for r in rows[:10]]
-    assert path_table(again)[0]["optimal_floor"] == pytest.approx(t["criterion"]["optimal_floor"])
+    assert decision_path_table(again)[0]["optimal_floor"] == pytest.approx(t["criterion"]["optimal_floor"])
     assert t["all"]["count"] == len(rows)
 
 

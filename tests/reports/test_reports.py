@@ -70,6 +70,8 @@ def _patches(n_right: int, n_wrong: int, paper: bool) -> list[dict]:
         out.append({"patch": i, "n_pixels": 300 + 50 * i, "truth": truth, "truth_feature": f"feat{i}",
                     "label": label, "probabilities": probs, "plausibilities": pl if paper else pl,
                     "reason": "", "small": False, "noisy": False})
+        if not paper:  # how the core reached the label, and the floor of that path (0.1: 0.92 for a sure label)
+            out[-1].update(path="criterion" if i < n_right else "unexplained", floor=0.1)
     return out
 
 
@@ -223,6 +225,22 @@ def test_sweep_groups_get_a_metric_vs_value_plot(tmp_path):
                                                                                {"noise_scale": 2.0})
     assert parse_sweep_group("a/b[noise_scale=0.5][max_range=4]") == ("a/b", {"noise_scale": 0.5, "max_range": 4.0})
     assert parse_sweep_group("mockup/mockup_laser") is None
+
+
+def test_each_decision_path_of_the_classifier_is_tabled(full_report, null_report):
+    """The core's patch records say how each label was reached: the report tables each path's accuracy against
+    its stated confidence (the hand-made records: right at 0.92 by the criterion, wrong at 0.92 as unexplained OTH,
+    whose Brier-optimal floor is then 1: every class alike)."""
+    from reports.render import decision_path_rows, load_run
+
+    for run, html, md in (full_report, null_report):
+        assert "How sure each decision path" in html and "How sure each decision path" in md
+        data = load_run(run)
+        rows = {(r[0].text, r[1].text): [c.text for c in r[2:]] for r in decision_path_rows(data, {"core": {}}, 200)}
+        assert rows[("core", "criterion")][1:3] == ["1.000", "0.920"]
+        assert rows[("core", "unexplained")][1:3] == ["0.000", "0.920"]
+        assert rows[("core", "unexplained")][5] == "1.000"
+        assert not decision_path_rows(data, {"paper": {}}, 200)  # the paper's records carry no path
 
 
 def test_peer_methods_side_by_side(full_report):
