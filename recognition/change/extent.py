@@ -108,14 +108,18 @@ def return_expected(f: Feature, origin: np.ndarray, rays: np.ndarray, cos_grazin
     wrong with it (a dropout at grazing incidence is expected; one at near-normal incidence is not)."""
     hits = ray_hits(f, origin, rays)
     ok = np.all(np.isfinite(hits), axis=1)
-    if isinstance(f, Plane):
-        normals = np.broadcast_to(f.normal, rays.shape)
-    else:  # Cylinder: the radial direction at the hit
-        w = np.where(ok[:, None], hits, 0.0) - f.centre
-        radial = w - np.outer(w @ f.axis, f.axis)
-        normals = radial / np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-12)
-    cos = np.abs(np.einsum("ij,ij->i", rays, normals))
+    cos = np.abs(np.einsum("ij,ij->i", rays, _surface_normals(f, hits, ok)))
     return ok & (cos >= cos_grazing)
+
+
+def _surface_normals(f: Feature, hits: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """Unit normals (N, 3) of the feature's unbounded surface at ``hits`` (N, 3): a plane's normal, or a
+    cylinder's radial direction at the hit; rows not ``ok`` (no hit) get the radial direction of the origin's."""
+    if isinstance(f, Plane):
+        return np.broadcast_to(f.normal, hits.shape)
+    w = np.where(ok[:, None], hits, 0.0) - f.centre
+    radial = w - np.outer(w @ f.axis, f.axis)
+    return radial / np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-12)
 
 
 def extent_changes(f: Feature, origin: np.ndarray, rays_w: np.ndarray, data_w: np.ndarray, margin: np.ndarray,
@@ -148,15 +152,18 @@ def extent_changes(f: Feature, origin: np.ndarray, rays_w: np.ndarray, data_w: n
     on, hit_cand = on[keep], hit_cand[keep]
     is_rev = np.isin(beyond_predicted, revealed)
     changes: list[EdgeChange] = []
+    directions = [a for a, _ in axes]
+    stretch_on = _stretch(f, rays_w[on], hit_cand, directions)  # the footprint along each axis
+    stretch_pred = _stretch(f, rays_w[beyond_predicted], hit_pred, directions)
     for i, (a, h) in enumerate(axes):
-        margin_on = margin[on] * _stretch(f, rays_w[on], hit_cand, a)  # the footprint along this axis
-        margin_pred = margin[beyond_predicted] * _stretch(f, rays_w[beyond_predicted], hit_pred, a)
+        margin_on = margin[on] * stretch_on[i]
+        margin_pred = margin[beyond_predicted] * stretch_pred[i]
         x_found = (hit_found - f.centre) @ a
         x_pred = (hit_pred - f.centre) @ a
         x_cand = (hit_cand - f.centre) @ a
         if len(axes) > 1:  # within the other axis's extent (beyond this edge, not past a corner)
             b, hb = axes[1 - i]
-            in_band = np.abs((hit_cand - f.centre) @ b) <= hb + margin[on] * _stretch(f, rays_w[on], hit_cand, b)
+            in_band = np.abs((hit_cand - f.centre) @ b) <= hb + margin[on] * stretch_on[1 - i]
         else:
             in_band = np.ones(len(on), dtype=bool)
         per_axis: list[EdgeChange] = []
@@ -186,24 +193,25 @@ def extent_changes(f: Feature, origin: np.ndarray, rays_w: np.ndarray, data_w: n
     return changes
 
 
-def _stretch(f: Feature, rays: np.ndarray, hits: np.ndarray, a: np.ndarray, min_cos: float = 0.2) -> np.ndarray:
-    """How much a footprint across a ray (N, 3, unit) lengthens along the in-surface unit direction ``a`` where
-    the ray meets the feature's surface (hits (N, 3)): ``sqrt(1 + (a.e)² tan² i)``, ``i`` the incidence and ``e``
-    the unit direction of the ray projected on the surface (the footprint is stretched by ``1 / cos i`` along
-    ``e`` and not across it); ``cos i`` at least ``min_cos``. NaN hits give 1 / min_cos."""
-    if isinstance(f, Plane):
-        n = np.broadcast_to(f.normal, rays.shape)
-    else:
-        w = np.nan_to_num(hits) - f.centre
-        radial = w - np.outer(w @ f.axis, f.axis)
-        n = radial / np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-12)
-    c = np.abs(np.einsum("ij,ij->i", rays, n))
-    t = rays - c[:, None] * np.sign(np.einsum("ij,ij->i", rays, n))[:, None] * n
+def _stretch(f: Feature, rays: np.ndarray, hits: np.ndarray, directions: list[np.ndarray],
+             min_cos: float = 0.2) -> np.ndarray:
+    """How much a footprint across a ray (N, 3, unit) lengthens along each in-surface unit direction of
+    ``directions`` where the ray meets the feature's surface (hits (N, 3)); (len(directions), N):
+    ``sqrt(1 + (a.e)² tan² i)``, ``i`` the incidence and ``e`` the unit direction of the ray projected on the
+    surface (the footprint is stretched by ``1 / cos i`` along ``e`` and not across it); ``cos i`` at least
+    ``min_cos``. Rays without a hit give 1 / min_cos."""
+    ok = np.all(np.isfinite(hits), axis=1)
+    n = _surface_normals(f, hits, ok)
+    d = np.einsum("ij,ij->i", rays, n)
+    t = rays - d[:, None] * n  # the ray projected on the surface
     e = t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
-    cos = np.maximum(c, min_cos)
-    ae = e @ a
-    out = np.sqrt(1.0 + ae * ae * (1.0 / (cos * cos) - 1.0))
-    return np.where(np.all(np.isfinite(hits), axis=1), out, 1.0 / min_cos)
+    cos = np.maximum(np.abs(d), min_cos)
+    tan2 = 1.0 / (cos * cos) - 1.0
+    out = []
+    for a in directions:
+        ae = e @ a
+        out.append(np.where(ok, np.sqrt(1.0 + ae * ae * tan2), 1.0 / min_cos))
+    return np.array(out)
 
 
 def outgrows(f: Plane, pts: np.ndarray, normal: np.ndarray, margin_m: float, tolerance: float) -> bool:

@@ -178,17 +178,18 @@ def test_a_footprint_stretches_along_the_incidence_plane_only():
         ray = np.array([[math.sin(i), 0.0, -math.cos(i)]])
         hit = ray_hits(face, np.array([0, 0, 1.0]), ray)
         cos = max(math.cos(i), 0.2)
-        assert _stretch(face, ray, hit, np.array([1.0, 0, 0]))[0] == pytest.approx(1 / cos)
-        assert _stretch(face, ray, hit, np.array([0, 1.0, 0]))[0] == pytest.approx(1.0)
         diag = np.array([1.0, 1.0, 0]) / math.sqrt(2)
-        assert _stretch(face, ray, hit, diag)[0] == pytest.approx(math.sqrt(1 + 0.5 * (1 / cos**2 - 1)))
+        along_x, along_y, along_diag = _stretch(face, ray, hit, [np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), diag])
+        assert along_x[0] == pytest.approx(1 / cos)
+        assert along_y[0] == pytest.approx(1.0)
+        assert along_diag[0] == pytest.approx(math.sqrt(1 + 0.5 * (1 / cos**2 - 1)))
     pipe = Cylinder("p", centre=np.zeros(3), axis=np.array([0, 0, 1.0]), radius=0.5, length=2.0)
     i = math.radians(60)
     ray = np.array([[-math.cos(i), 0.0, math.sin(i)]])  # meets the side at x = 0.5 from (2.5, 0, z0)
     origin = np.array([2.5, 0.0, -2.0 * math.tan(i)])
     hit = ray_hits(pipe, origin, ray)
     assert hit[0] == pytest.approx([0.5, 0.0, 0.0], abs=1e-9)
-    assert _stretch(pipe, ray, hit, pipe.axis)[0] == pytest.approx(1 / math.cos(i))
+    assert _stretch(pipe, ray, hit, [pipe.axis])[0, 0] == pytest.approx(1 / math.cos(i))
 
 
 def test_an_edge_margin_is_stretched_along_the_incidence_plane_only():
