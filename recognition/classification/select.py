@@ -179,8 +179,8 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
     # ``correlation_area`` pixels make their parameters vary up to that many times more (variance)
     sigma_scale = params.invariant_sigma_scale * math.sqrt(
         max(1.0, min(extra.get("correlation_area", 1.0), len(pts))))
-    if label == "OTH" and params.min_inliers is not None and n_all >= params.min_torus_points and \
-            not _elbow(crit, gof):
+    elbow = _elbow(crit, gof)
+    if label == "OTH" and params.min_inliers is not None and n_all >= params.min_torus_points and not elbow:
         rescue = _trimmed_rescue(fits, crit, gof, ps, ss, ns, axes, q, params, n, rho, core)
         if rescue is not None:
             label, fit, frac = rescue
@@ -191,13 +191,12 @@ def _decide(fits, crit, gof, q, ps, ss, pts, sig, nrm, rays, params: SelectParam
             probs = _probs(**pr)
             label = max(CLASSES, key=lambda c: probs[c])
             details["trimmed_inlier_fraction"] = frac
-    path = decision_path(label, extra.get("curved_fits_skipped", False), "trimmed_inlier_fraction" in details,
-                         _elbow(crit, gof))
+    path = decision_path(label, extra.get("curved_fits_skipped", False), "trimmed_inlier_fraction" in details, elbow)
     details["path"], details["floor"] = path, params.floor(path)
     probs = _floored(probs, details["floor"])
     plaus = {c: float(probs[c]) for c in ("CYL", "SPH", "CONE")}
     if label == "OTH":
-        if _elbow(crit, gof):
+        if elbow:
             t = fits["TOR"]
             why = (f"a torus (pipe elbow) explains the points: bend radius {t.major_radius * 1e3:.4g} mm, pipe "
                    f"radius {t.minor_radius * 1e3:.4g} mm")
