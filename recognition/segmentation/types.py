@@ -367,7 +367,7 @@ class SegmentationParams:
                      "min_leftover_pixels", "min_region_pixels", "seed_tile", "final_fit_points"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)!r}")
-        for name in ("max_fit_points", "merge_fit_points"):
+        for name in ("max_fit_points", "merge_fit_points", "torus_join_fit_points"):
             if getattr(self, name) < 10:
                 raise ValueError(f"{name} must be >= 10, got {getattr(self, name)!r}")
         if self.decimation != AUTO and not (isinstance(self.decimation, int | np.integer) and self.decimation >= 1):
@@ -380,7 +380,7 @@ class SegmentationParams:
                 raise ValueError(f"{name} must be >= 1 or None (off), got {v!r}")
         for name in ("absorb_rounds", "kplanes_iterations", "kplanes_trials", "axis_split_passes", "axial_min_bins",
                      "axial_slice_points", "elbow_cut_rounds", "reassign_refit_pixels", "noise_block",
-                     "complete_rounds"):
+                     "complete_rounds", "torus_join_min_pixels", "torus_join_min_border"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)!r}")
         if self.torus_join_k is not None and not (np.isfinite(self.torus_join_k) and self.torus_join_k > 0):
@@ -388,9 +388,6 @@ class SegmentationParams:
         if not (self.torus_join_cylinder_ratio >= 1 and self.torus_join_max_bend > 1):
             raise ValueError("torus_join_cylinder_ratio must be >= 1 and torus_join_max_bend > 1, got "
                              f"{self.torus_join_cylinder_ratio!r} and {self.torus_join_max_bend!r}")
-        if min(self.torus_join_min_pixels, self.torus_join_min_border) < 1 or self.torus_join_fit_points < 10:
-            raise ValueError("torus_join_min_pixels and torus_join_min_border must be >= 1, "
-                             "torus_join_fit_points >= 10")
         if self.axial_fit_points < 10:
             raise ValueError(f"axial_fit_points must be >= 10, got {self.axial_fit_points!r}")
         for name in ("max_variance_ratio", "plane_pair_tol", "kplanes_inlier_k", "face_broad_ratio", "elbow_cut_k",
