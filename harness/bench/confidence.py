@@ -13,12 +13,12 @@ applied (:func:`evaluation.classification.decision_path_table`; the report shows
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 from evaluation.classification import decision_path_table
 from evaluation.metrics import MIN_SCORED_PIXELS
+from harness.store import RunDirectory
 
 __all__ = ["main"]
 
@@ -30,13 +30,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--min-pixels", type=int, default=MIN_SCORED_PIXELS)
     ap.add_argument("--group", default="", help="only trials whose id contains this (e.g. kinect_like)")
     args = ap.parse_args(argv)
-    files = sorted((args.run_dir / "trials").glob("*.json"))
-    if not files:
+    records = RunDirectory(args.run_dir).read_trials()
+    if not records:
         print(f"{args.run_dir}: no trials/*.json: not a results directory", file=sys.stderr)
         return 2
     rows = []
-    for f in files:
-        record = json.loads(f.read_text(encoding="utf-8"))
+    for record in records:
         if args.group not in record["trial_id"]:
             continue
         section = record.get("methods", {}).get(args.method, {}).get("classification")
